@@ -1,0 +1,742 @@
+"""Reader of the EuRoC ASL dataset layout (real EuRoC MAV sequences and ``sim/`` output).
+
+Layout read here (everything else under ``mav0``, e.g. ``cam1``, ``leica0``, ``pointcloud0``, is ignored)::
+
+    <root>/mav0/cam0/data.csv                      #timestamp [ns],filename
+    <root>/mav0/cam0/data/<timestamp>.png          8-bit grey, distorted (radial-tangential)
+    <root>/mav0/cam0/sensor.yaml                   intrinsics, distortion, resolution, rate_hz, T_BS
+    <root>/mav0/imu0/data.csv                      #timestamp [ns],w_RS_S_x..z [rad s^-1],a_RS_S_x..z [m s^-2]
+    <root>/mav0/imu0/sensor.yaml                   noise densities, random walks, rate_hz, T_BS
+    <root>/mav0/state_groundtruth_estimate0/data.csv   (optional) p, q (w,x,y,z), v, b_w, b_a of the body
+    <root>/mav0/depth0/{data.csv,data/*.png,sensor.yaml}  (optional, written by sim/) uint16 depth * 5000
+
+Files are accepted as the real datasets ship them: ``sensor.yaml`` with or without OpenCV's
+``%YAML:1.0`` first line (and ``!!opencv-matrix`` tags), ``#`` comment lines in the CSVs, CRLF line ends,
+``data.csv`` rows whose image is missing (warned about with :class:`EurocWarning` and skipped), ground truth
+covering only part of the images.
+Bad input raises :class:`EurocFormatError` (a ``ValueError``) naming the file, the line and the problem.
+
+Conventions (``runtime/geometry.py``): timestamps int64 ns; ``T_b_c`` is cam0's ``T_BS`` (body = IMU frame);
+ground truth is ``T_w_b`` of the body; EuRoC quaternions are ``(w, x, y, z)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from runtime.geometry import Camera, quat_wxyz_to_R
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "EurocFormatError",
+    "EurocWarning",
+    "ImuParams",
+    "GroundTruth",
+    "EurocSequence",
+    "read_euroc",
+    "read_euroc_csv",
+    "load_sensor_yaml",
+    "read_camera_yaml",
+    "read_imu_yaml",
+    "read_groundtruth",
+    "IMU_COLUMNS",
+    "GT_COLUMNS",
+    "DEPTH_SCALE",
+]
+
+#: Column names of ``imu0/data.csv`` (gyro first, then accelerometer), units stripped.
+IMU_COLUMNS = ("timestamp", "w_RS_S_x", "w_RS_S_y", "w_RS_S_z", "a_RS_S_x", "a_RS_S_y", "a_RS_S_z")
+#: Column names of ``state_groundtruth_estimate0/data.csv``, units stripped.
+GT_COLUMNS = (
+    "timestamp",
+    "p_RS_R_x",
+    "p_RS_R_y",
+    "p_RS_R_z",
+    "q_RS_w",
+    "q_RS_x",
+    "q_RS_y",
+    "q_RS_z",
+    "v_RS_R_x",
+    "v_RS_R_y",
+    "v_RS_R_z",
+    "b_w_RS_S_x",
+    "b_w_RS_S_y",
+    "b_w_RS_S_z",
+    "b_a_RS_S_x",
+    "b_a_RS_S_y",
+    "b_a_RS_S_z",
+)
+#: Default ``depth0`` PNG scale: value = depth_m * DEPTH_SCALE (TUM RGB-D convention), 0 = invalid.
+DEPTH_SCALE = 5000.0
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_DIGITS = re.compile(r"\d+")
+
+
+class EurocFormatError(ValueError):
+    """A file of an EuRoC-layout sequence is missing or malformed; the message names file and problem."""
+
+
+class EurocWarning(UserWarning):
+    """Recoverable oddity in an EuRoC-layout sequence (e.g. a ``data.csv`` row whose image is missing)."""
+
+
+# --------------------------------------------------------------------------- data classes
+@dataclass(frozen=True, eq=False)
+class ImuParams:
+    """IMU noise model from ``imu0/sensor.yaml`` (continuous-time densities, as GTSAM expects them squared).
+
+    Attributes:
+        gyro_noise_density: gyroscope white noise [rad / s / sqrt(Hz)].
+        gyro_random_walk: gyroscope bias random walk [rad / s^2 / sqrt(Hz)].
+        accel_noise_density: accelerometer white noise [m / s^2 / sqrt(Hz)].
+        accel_random_walk: accelerometer bias random walk [m / s^3 / sqrt(Hz)].
+        rate_hz: nominal sample rate [Hz].
+        T_b_s: (4, 4) pose of the IMU sensor in the body frame (identity for EuRoC: body = IMU).
+    """
+
+    gyro_noise_density: float
+    gyro_random_walk: float
+    accel_noise_density: float
+    accel_random_walk: float
+    rate_hz: float
+    T_b_s: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+@dataclass(eq=False)
+class GroundTruth:
+    """Body (IMU) trajectory from ``state_groundtruth_estimate0/data.csv``.
+
+    Attributes:
+        ts: (K,) int64 timestamps [ns], strictly increasing.
+        p_w_b: (K, 3) body position in the world [m].
+        q_wxyz: (K, 4) unit quaternions ``(w, x, y, z)`` of ``R_w_b`` (normalised on read).
+        T_w_b: (K, 4, 4) body poses.
+        v_w: (K, 3) body velocity in the world [m/s].
+        bg: (K, 3) gyroscope bias [rad/s].
+        ba: (K, 3) accelerometer bias [m/s^2].
+    """
+
+    ts: np.ndarray
+    p_w_b: np.ndarray
+    q_wxyz: np.ndarray
+    T_w_b: np.ndarray
+    v_w: np.ndarray
+    bg: np.ndarray
+    ba: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.ts.shape[0])
+
+    def __repr__(self) -> str:
+        return f"GroundTruth({len(self)} states, {self.ts[0]}..{self.ts[-1]} ns)"
+
+    def covers(self, ts_ns: np.ndarray | int) -> np.ndarray:
+        """Boolean mask: which timestamps [ns] lie in ``[ts[0], ts[-1]]`` (where :meth:`pose_at` works)."""
+        t = np.asarray(ts_ns)
+        return (t >= self.ts[0]) & (t <= self.ts[-1])
+
+    def pose_at(self, ts_ns: np.ndarray | int) -> np.ndarray:
+        """Interpolated body pose ``T_w_b`` at time(s) ``ts_ns``.
+
+        Position is interpolated linearly and rotation by slerp between the two enclosing ground-truth states.
+
+        Args:
+            ts_ns: int timestamp [ns] or (N,) integer array.
+
+        Returns:
+            (4, 4) float64 for a scalar, (N, 4, 4) for an array.
+
+        Raises:
+            ValueError: a timestamp outside ``[ts[0], ts[-1]]`` or a non-integer timestamp.
+        """
+        t = np.asarray(ts_ns)
+        if t.dtype.kind not in "iu":
+            raise ValueError(f"ground-truth timestamps must be integer nanoseconds, got dtype {t.dtype}")
+        scalar = t.ndim == 0
+        t = np.atleast_1d(t).astype(np.int64)
+        outside = ~self.covers(t)
+        if outside.any():
+            bad = int(t[np.flatnonzero(outside)[0]])
+            raise ValueError(
+                f"timestamp {bad} ns is outside the ground-truth range [{self.ts[0]}, {self.ts[-1]}] ns "
+                f"({int(outside.sum())} of {t.size} queried timestamps outside)"
+            )
+        K = len(self)
+        if K == 1:  # only an exact hit is inside the range
+            out = np.broadcast_to(self.T_w_b[0], (t.size, 4, 4)).copy()
+            return out[0] if scalar else out
+        i = np.clip(np.searchsorted(self.ts, t, side="right") - 1, 0, K - 2)  # ts[i] <= t <= ts[i+1]
+        dt = (self.ts[i + 1] - self.ts[i]).astype(np.float64)
+        a = (t - self.ts[i]).astype(np.float64) / dt  # (N,) in [0, 1]
+        p = (1.0 - a)[:, None] * self.p_w_b[i] + a[:, None] * self.p_w_b[i + 1]
+        q = _slerp(self.q_wxyz[i], self.q_wxyz[i + 1], a)
+        out = np.zeros((t.size, 4, 4))
+        out[:, :3, :3] = quat_wxyz_to_R(q)
+        out[:, :3, 3] = p
+        out[:, 3, 3] = 1.0
+        return out[0] if scalar else out
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Shortest-path slerp of unit quaternions (N, 4) at fractions a (N,) in [0, 1]."""
+    dot = np.sum(q0 * q1, axis=-1)
+    q1 = np.where((dot < 0)[:, None], -q1, q1)
+    dot = np.clip(np.abs(dot), 0.0, 1.0)
+    theta = np.arccos(dot)
+    s = np.sin(theta)
+    small = s < 1e-9
+    s_safe = np.where(small, 1.0, s)
+    w0 = np.where(small, 1.0 - a, np.sin((1.0 - a) * theta) / s_safe)
+    w1 = np.where(small, a, np.sin(a * theta) / s_safe)
+    q = w0[:, None] * q0 + w1[:, None] * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+@dataclass(eq=False)
+class EurocSequence:
+    """One EuRoC-layout sequence; images and depth maps are read lazily, everything else is in memory.
+
+    Attributes:
+        root: folder that contains ``mav0``.
+        camera: cam0 model (distorted pinhole + radial-tangential, from ``cam0/sensor.yaml``).
+        T_b_c: (4, 4) cam0 pose in the body (IMU) frame, cam0 ``T_BS``.
+        cam_rate_hz: nominal camera rate [Hz].
+        frame_ts: (N,) int64 frame timestamps [ns] (only frames whose PNG exists).
+        frame_paths: N paths of the cam0 PNGs.
+        imu_ts: (M,) int64 IMU timestamps [ns].
+        gyro: (M, 3) angular velocity [rad/s] in the IMU frame.
+        accel: (M, 3) specific force [m/s^2] in the IMU frame.
+        imu: noise model and ``T_b_s`` from ``imu0/sensor.yaml``.
+        gt: ground truth of the body, or None when the sequence has none.
+        depth_scale: PNG value per metre of ``depth0`` (5000 unless its sensor.yaml says otherwise).
+    """
+
+    root: Path
+    camera: Camera
+    T_b_c: np.ndarray
+    cam_rate_hz: float
+    frame_ts: np.ndarray
+    frame_paths: list[Path]
+    imu_ts: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    imu: ImuParams
+    gt: GroundTruth | None = None
+    depth_scale: float = DEPTH_SCALE
+    _depth_paths: dict[int, Path] | None = field(default=None, repr=False)
+
+    @property
+    def mav0(self) -> Path:
+        return self.root / "mav0"
+
+    @property
+    def has_depth(self) -> bool:
+        """True when the sequence has a ``depth0`` folder (ground-truth depth written by ``sim/``)."""
+        return self._depth_paths is not None
+
+    def __len__(self) -> int:
+        return int(self.frame_ts.shape[0])
+
+    def __repr__(self) -> str:
+        gt = "none" if self.gt is None else len(self.gt)
+        depth = "none" if self._depth_paths is None else len(self._depth_paths)
+        return (
+            f"EurocSequence(root={str(self.root)!r}, frames={len(self)}, imu={self.imu_ts.shape[0]}, "
+            f"gt={gt}, "
+            f"depth={depth}, camera={self.camera.width}x{self.camera.height})"
+        )
+
+    def _check_index(self, i: int) -> int:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame index {i} out of range for {n} frames")
+        return int(i) % n
+
+    def image(self, i: int) -> np.ndarray:
+        """Grey image of frame ``i``: (H, W) uint8, distorted as recorded; raises if unreadable/mis-sized."""
+        i = self._check_index(i)
+        path = self.frame_paths[i]
+        img = _imread(path, cv2.IMREAD_GRAYSCALE)
+        _check_size(img, self.camera, path, "cam0/sensor.yaml")
+        return img
+
+    def depth(self, i: int) -> np.ndarray | None:
+        """Ground-truth depth of frame ``i``: (H, W) float32 z in cam0 [m], 0 = invalid; None if absent."""
+        i = self._check_index(i)
+        if self._depth_paths is None:
+            return None
+        path = self._depth_paths.get(int(self.frame_ts[i]))
+        if path is None:
+            return None
+        raw = _imread(path, cv2.IMREAD_UNCHANGED)
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise EurocFormatError(
+                f"{path}: depth PNG must be single-channel uint16, got {raw.dtype} with shape {raw.shape}"
+            )
+        _check_size(raw, self.camera, path, "cam0/sensor.yaml")
+        return raw.astype(np.float32) / np.float32(self.depth_scale)
+
+    def gt_pose_at(self, ts_ns: np.ndarray | int) -> np.ndarray:
+        """Interpolated ground-truth ``T_w_b`` at ``ts_ns`` (see :meth:`GroundTruth.pose_at`)."""
+        if self.gt is None:
+            raise ValueError(f"{self.mav0}: sequence has no ground truth (state_groundtruth_estimate0)")
+        return self.gt.pose_at(ts_ns)
+
+
+# --------------------------------------------------------------------------- files
+def _imread(path: Path, flags: int) -> np.ndarray:
+    try:
+        img = cv2.imread(str(path), flags)
+    except cv2.error as e:  # pragma: no cover - cv2 usually returns None instead
+        raise EurocFormatError(f"{path}: cannot decode image ({e})") from e
+    if img is None:
+        if not Path(path).is_file():
+            raise EurocFormatError(f"{path}: image file is missing")
+        raise EurocFormatError(f"{path}: cannot decode image (corrupt or not an image file)")
+    return img
+
+
+def _check_size(img: np.ndarray, cam: Camera, path: Path, source: str) -> None:
+    h, w = img.shape[:2]
+    if (w, h) != (cam.width, cam.height):
+        raise EurocFormatError(
+            f"{path}: image is {w}x{h} (width x height) but {source} resolution is {cam.width}x{cam.height}"
+        )
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk without decoding; None if the file is not a PNG."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+class _OpenCvYamlLoader(yaml.SafeLoader):
+    """SafeLoader that also reads OpenCV's ``!!opencv-matrix`` mappings."""
+
+
+def _construct_opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node):
+    return loader.construct_mapping(node, deep=True)
+
+
+_OpenCvYamlLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", _construct_opencv_matrix)
+
+
+def load_sensor_yaml(path: str | Path) -> dict:
+    """Load an ASL ``sensor.yaml``; accepts OpenCV's ``%YAML:1.0`` first line and ``!!opencv-matrix`` tags.
+
+    Raises:
+        EurocFormatError: missing file, invalid YAML, or not a mapping.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise EurocFormatError(f"{path}: missing file")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise EurocFormatError(f"{path}: cannot read ({e})") from e
+    lines = text.splitlines()
+    # PyYAML rejects OpenCV's "%YAML:1.0" directive (and YAML 1.0 itself): drop any leading %YAML line.
+    first = next((j for j, ln in enumerate(lines) if ln.strip()), None)
+    if first is not None and lines[first].lstrip().startswith("%YAML"):
+        del lines[first]
+    try:
+        data = yaml.load("\n".join(lines), Loader=_OpenCvYamlLoader)
+    except yaml.YAMLError as e:
+        raise EurocFormatError(f"{path}: invalid YAML ({e})") from e
+    if not isinstance(data, dict):
+        raise EurocFormatError(f"{path}: expected a YAML mapping, got {type(data).__name__}")
+    return data
+
+
+def _float(value, key: str, path: Path) -> float:
+    try:
+        x = float(value)  # PyYAML leaves e.g. "1e-3" (no dot) as a string: float() reads it
+    except (TypeError, ValueError):
+        raise EurocFormatError(f"{path}: '{key}' must be a number, got {value!r}") from None
+    if not np.isfinite(x):
+        raise EurocFormatError(f"{path}: '{key}' is not finite ({value!r})")
+    return x
+
+
+def _require(data: dict, key: str, path: Path):
+    if key not in data:
+        raise EurocFormatError(f"{path}: missing key '{key}'")
+    return data[key]
+
+
+def _float_list(data: dict, key: str, n: int | Sequence[int], path: Path) -> list[float]:
+    value = _require(data, key, path)
+    ns = (n,) if isinstance(n, int) else tuple(n)
+    if not isinstance(value, (list, tuple)) or len(value) not in ns:
+        raise EurocFormatError(
+            f"{path}: '{key}' must be a list of {' or '.join(map(str, ns))} numbers, got {value!r}"
+        )
+    return [_float(v, f"{key}[{j}]", path) for j, v in enumerate(value)]
+
+
+def _matrix4(data: dict, key: str, path: Path) -> np.ndarray:
+    """A rigid 4x4 transform stored as ``{rows: 4, cols: 4, data: [16 numbers, row-major]}``."""
+    m = _require(data, key, path)
+    if not isinstance(m, dict):
+        raise EurocFormatError(f"{path}: '{key}' must be a mapping with rows, cols, data; got {m!r}")
+    rows, cols = (int(_float(_require(m, k, path), f"{key}.{k}", path)) for k in ("rows", "cols"))
+    if (rows, cols) != (4, 4):
+        raise EurocFormatError(f"{path}: '{key}' must be 4x4, got rows={rows} cols={cols}")
+    vals = _float_list(m, "data", 16, path)
+    T = np.asarray(vals, dtype=np.float64).reshape(4, 4)  # row-major
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
+        raise EurocFormatError(f"{path}: '{key}' last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > 1e-5 or np.linalg.det(R) < 0:
+        raise EurocFormatError(
+            f"{path}: '{key}' rotation is not a rotation "
+            f"(|R R^T - I| = {err:.2e}, det = {np.linalg.det(R):.6f})"
+        )
+    return T
+
+
+def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
+    """Read cam0's ``sensor.yaml``.
+
+    Returns:
+        camera (pinhole + radtan, size from ``resolution`` [w, h]), ``T_b_c`` (4, 4) from ``T_BS``,
+        ``rate_hz``.
+
+    Raises:
+        EurocFormatError: missing keys, wrong lengths, unsupported camera or distortion model.
+    """
+    path = Path(path)
+    d = load_sensor_yaml(path)
+    model = str(d.get("camera_model", "pinhole")).lower()
+    if model != "pinhole":
+        raise EurocFormatError(f"{path}: camera_model '{model}' is not supported (only 'pinhole')")
+    dmodel = str(d.get("distortion_model", "radial-tangential")).lower()
+    if dmodel not in ("radial-tangential", "radtan", "plumb_bob", "none"):
+        raise EurocFormatError(
+            f"{path}: distortion_model '{dmodel}' is not supported (only radial-tangential k1, k2, p1, p2)"
+        )
+    fx, fy, cx, cy = _float_list(d, "intrinsics", 4, path)
+    if fx <= 0 or fy <= 0:
+        raise EurocFormatError(f"{path}: focal lengths must be positive, got fu={fx}, fv={fy}")
+    if dmodel == "none" and "distortion_coefficients" not in d:
+        dist = [0.0, 0.0, 0.0, 0.0]
+    else:
+        dist = _float_list(d, "distortion_coefficients", (4, 5), path)
+        if len(dist) == 5:  # plumb_bob k1, k2, p1, p2, k3: only k3 = 0 is representable
+            if dist[4] != 0.0:
+                raise EurocFormatError(
+                    f"{path}: distortion_coefficients k3={dist[4]} is not supported (must be 0)"
+                )
+            dist = dist[:4]
+    w, h = _float_list(d, "resolution", 2, path)
+    if w <= 0 or h <= 0 or w != int(w) or h != int(h):
+        raise EurocFormatError(
+            f"{path}: resolution must be two positive integers [width, height], got {[w, h]}"
+        )
+    rate = _float(_require(d, "rate_hz", path), "rate_hz", path)
+    if rate <= 0:
+        raise EurocFormatError(f"{path}: rate_hz must be positive, got {rate}")
+    T_b_c = _matrix4(d, "T_BS", path)
+    cam = Camera(fx, fy, cx, cy, int(w), int(h), (dist[0], dist[1], dist[2], dist[3]))
+    return cam, T_b_c, rate
+
+
+def read_imu_yaml(path: str | Path) -> ImuParams:
+    """Read imu0's ``sensor.yaml`` (noise densities, random walks, ``rate_hz``, ``T_BS``)."""
+    path = Path(path)
+    d = load_sensor_yaml(path)
+    vals = {}
+    for key in (
+        "gyroscope_noise_density",
+        "gyroscope_random_walk",
+        "accelerometer_noise_density",
+        "accelerometer_random_walk",
+        "rate_hz",
+    ):
+        vals[key] = _float(_require(d, key, path), key, path)
+        if vals[key] < 0 or (key == "rate_hz" and vals[key] == 0):
+            raise EurocFormatError(f"{path}: '{key}' must be positive, got {vals[key]}")
+    T_b_s = _matrix4(d, "T_BS", path) if "T_BS" in d else np.eye(4)
+    return ImuParams(
+        gyro_noise_density=vals["gyroscope_noise_density"],
+        gyro_random_walk=vals["gyroscope_random_walk"],
+        accel_noise_density=vals["accelerometer_noise_density"],
+        accel_random_walk=vals["accelerometer_random_walk"],
+        rate_hz=vals["rate_hz"],
+        T_b_s=T_b_s,
+    )
+
+
+def _norm_name(name: str) -> str:
+    """'#timestamp [ns]' / ' w_RS_S_x [rad s^-1]' -> 'timestamp' / 'w_rs_s_x'."""
+    return re.sub(r"\[.*?\]", "", name).strip().lstrip("#").strip().lower()
+
+
+def _data_lines(path: Path) -> tuple[list[str], np.ndarray, list[str]]:
+    """Non-empty, non-comment lines of a CSV, their 1-based line numbers, and the comment lines."""
+    if not path.is_file():
+        raise EurocFormatError(f"{path}: missing file")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise EurocFormatError(f"{path}: cannot read ({e})") from e
+    rows: list[str] = []
+    numbers: list[int] = []
+    comments: list[str] = []
+    for j, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            comments.append(s)
+            continue
+        rows.append(s)
+        numbers.append(j)
+    return rows, np.asarray(numbers, dtype=np.int64), comments
+
+
+def _check_header(path: Path, comments: list[str], columns: Sequence[str]) -> None:
+    """A header naming the expected columns in another order (e.g. accel before gyro) is an error."""
+    want = [c.lower() for c in columns]
+    for c in comments[:1]:
+        got = [_norm_name(x) for x in c.split(",")]
+        if len(got) == len(want) and got != want and sorted(got) == sorted(want):
+            raise EurocFormatError(f"{path}: header columns {got} are not in the expected order {want}")
+
+
+def _bad_row(path: Path, rows: list[str], numbers: np.ndarray, columns: Sequence[str]) -> EurocFormatError:
+    """Find the first malformed row (slow path, only after the fast parser failed) and describe it."""
+    for s, ln in zip(rows, numbers, strict=True):
+        parts = s.split(",")
+        if len(parts) != len(columns):
+            return EurocFormatError(
+                f"{path}: line {ln}: expected {len(columns)} columns, got {len(parts)}: {s!r}"
+            )
+        if not _DIGITS.fullmatch(parts[0].strip()):
+            return EurocFormatError(f"{path}: line {ln}: timestamp {parts[0]!r} is not an integer [ns]")
+        for name, p in zip(columns[1:], parts[1:], strict=True):
+            try:
+                float(p)
+            except ValueError:
+                return EurocFormatError(f"{path}: line {ln}: column '{name}' value {p!r} is not a number")
+    return EurocFormatError(f"{path}: cannot parse")  # pragma: no cover
+
+
+def _check_increasing(path: Path, ts: np.ndarray, numbers: np.ndarray) -> None:
+    bad = np.flatnonzero(np.diff(ts) <= 0)
+    if bad.size:
+        j = int(bad[0])
+        raise EurocFormatError(
+            f"{path}: line {numbers[j + 1]}: timestamps not strictly increasing "
+            f"({ts[j + 1]} ns after {ts[j]} ns on line {numbers[j]})"
+        )
+
+
+def read_euroc_csv(path: str | Path, columns: Sequence[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a numeric ASL CSV (int timestamp [ns] then floats) with numpy, checking every row.
+
+    Args:
+        path: the CSV file; ``#`` lines and blank lines are skipped.
+        columns: expected column names (timestamp first), used for the column count and messages.
+
+    Returns:
+        ts (N,) int64 [ns], strictly increasing; values (N, len(columns) - 1) float64, all finite;
+        line numbers (N,) int64 of the rows in the file.
+
+    Raises:
+        EurocFormatError: missing file, no rows, malformed row, NaN/inf value, or non-increasing timestamps,
+        naming the file and the line (and column).
+    """
+    path = Path(path)
+    rows, numbers, comments = _data_lines(path)
+    _check_header(path, comments, columns)
+    if not rows:
+        raise EurocFormatError(f"{path}: no data rows")
+    ncol = len(columns)
+    commas = np.fromiter((s.count(",") for s in rows), dtype=np.int64, count=len(rows))
+    if (commas != ncol - 1).any():
+        raise _bad_row(path, rows, numbers, columns)
+    try:
+        ts = np.loadtxt(rows, delimiter=",", dtype=np.int64, usecols=0, ndmin=1)
+        vals = np.loadtxt(rows, delimiter=",", dtype=np.float64, usecols=range(1, ncol), ndmin=2)
+    except ValueError:
+        raise _bad_row(path, rows, numbers, columns) from None
+    if (ts < 0).any():
+        j = int(np.flatnonzero(ts < 0)[0])
+        raise EurocFormatError(f"{path}: line {numbers[j]}: negative timestamp {ts[j]}")
+    bad = ~np.isfinite(vals)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise EurocFormatError(
+            f"{path}: line {numbers[r]}: column '{columns[c + 1]}' is {vals[r, c]} "
+            "(NaN/inf values are not allowed)"
+        )
+    _check_increasing(path, ts, numbers)
+    return ts, vals, numbers
+
+
+def _read_file_list(path: Path) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """``#timestamp [ns],filename`` CSV -> (ts int64 (N,), filenames, line numbers)."""
+    rows, numbers, _ = _data_lines(path)
+    if not rows:
+        raise EurocFormatError(f"{path}: no data rows")
+    ts = np.empty(len(rows), dtype=np.int64)
+    names: list[str] = []
+    for j, (s, ln) in enumerate(zip(rows, numbers, strict=True)):
+        parts = [p.strip() for p in s.split(",")]
+        if len(parts) != 2:
+            raise EurocFormatError(
+                f"{path}: line {ln}: expected 2 columns (timestamp, filename), got {len(parts)}"
+            )
+        if not _DIGITS.fullmatch(parts[0]):
+            raise EurocFormatError(f"{path}: line {ln}: timestamp {parts[0]!r} is not an integer [ns]")
+        if not parts[1] or "/" in parts[1] or "\\" in parts[1]:
+            raise EurocFormatError(f"{path}: line {ln}: bad filename {parts[1]!r}")
+        ts[j] = int(parts[0])
+        names.append(parts[1])
+    _check_increasing(path, ts, numbers)
+    return ts, names, numbers
+
+
+def _existing(
+    path_csv: Path, data_dir: Path, ts: np.ndarray, names: list[str]
+) -> tuple[np.ndarray, list[Path]]:
+    """Keep the rows whose file exists in ``data_dir``; warn (naming the files) about the others."""
+    if not data_dir.is_dir():
+        raise EurocFormatError(f"{data_dir}: missing folder (images listed in {path_csv})")
+    present = {p.name for p in data_dir.iterdir()}
+    keep = np.fromiter((n in present for n in names), dtype=bool, count=len(names))
+    if not keep.all():
+        missing = [str(data_dir / n) for n, k in zip(names, keep, strict=True) if not k]
+        shown = ", ".join(missing[:5]) + (f", ... ({len(missing) - 5} more)" if len(missing) > 5 else "")
+        msg = (
+            f"{path_csv}: {len(missing)} of {len(names)} rows name files that do not exist, skipped: {shown}"
+        )
+        warnings.warn(msg, EurocWarning, stacklevel=3)
+    return ts[keep], [data_dir / n for n, k in zip(names, keep, strict=True) if k]
+
+
+def read_groundtruth(path: str | Path) -> GroundTruth:
+    """Read ``state_groundtruth_estimate0/data.csv`` (17 columns, quaternion ``w, x, y, z``)."""
+    path = Path(path)
+    ts, v, numbers = read_euroc_csv(path, GT_COLUMNS)
+    q = v[:, 3:7]
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-2)
+    if bad.size:
+        j = int(bad[0])
+        raise EurocFormatError(
+            f"{path}: line {numbers[j]}: quaternion (w,x,y,z) has norm {norm[j]:.6f}, not 1"
+        )
+    q = q / norm[:, None]
+    p = v[:, 0:3].copy()
+    T = np.zeros((len(ts), 4, 4))
+    T[:, :3, :3] = quat_wxyz_to_R(q)
+    T[:, :3, 3] = p
+    T[:, 3, 3] = 1.0
+    return GroundTruth(
+        ts=ts, p_w_b=p, q_wxyz=q, T_w_b=T, v_w=v[:, 7:10].copy(), bg=v[:, 10:13].copy(), ba=v[:, 13:16].copy()
+    )
+
+
+def _find_mav0(root: Path) -> tuple[Path, Path]:
+    if not root.is_dir():
+        raise EurocFormatError(f"{root}: missing folder (EuRoC sequence root)")
+    if (root / "mav0").is_dir():
+        return root, root / "mav0"
+    if root.name == "mav0" or (root / "cam0").is_dir():
+        return root.parent, root
+    raise EurocFormatError(f"{root}: missing folder 'mav0' (expected {root}/mav0/cam0, imu0, ...)")
+
+
+def read_euroc(root: str | Path) -> EurocSequence:
+    """Read an EuRoC ASL sequence (metadata, IMU and ground truth now; images lazily).
+
+    Args:
+        root: the folder that contains ``mav0``, or ``mav0`` itself.
+
+    Returns:
+        The sequence. Frames whose PNG is missing are skipped with an :class:`EurocWarning`. The first frame's
+        PNG header is checked against cam0's resolution now; every image again when it is read.
+
+    Raises:
+        EurocFormatError: a required file or folder is missing or malformed (the message names it).
+
+    Example:
+        >>> seq = read_euroc("data/MH_01_easy")  # doctest: +SKIP
+        >>> img = seq.image(0); T_w_b = seq.gt_pose_at(seq.frame_ts[100])  # doctest: +SKIP
+    """
+    root, mav0 = _find_mav0(Path(root))
+    cam_dir, imu_dir = mav0 / "cam0", mav0 / "imu0"
+    for d in (cam_dir, imu_dir):
+        if not d.is_dir():
+            raise EurocFormatError(f"{d}: missing folder")
+
+    camera, T_b_c, cam_rate = read_camera_yaml(cam_dir / "sensor.yaml")
+    ts_all, names, _ = _read_file_list(cam_dir / "data.csv")
+    frame_ts, frame_paths = _existing(cam_dir / "data.csv", cam_dir / "data", ts_all, names)
+    if not frame_paths:
+        raise EurocFormatError(f"{cam_dir / 'data.csv'}: none of the {len(names)} listed images exist")
+    size = _png_size(frame_paths[0])
+    if size is not None and size != (camera.width, camera.height):
+        raise EurocFormatError(
+            f"{frame_paths[0]}: image is {size[0]}x{size[1]} (width x height) but {cam_dir / 'sensor.yaml'} "
+            f"resolution is {camera.width}x{camera.height}"
+        )
+
+    imu = read_imu_yaml(imu_dir / "sensor.yaml")
+    imu_ts, iv, _ = read_euroc_csv(imu_dir / "data.csv", IMU_COLUMNS)
+
+    gt = None
+    gt_dir = mav0 / "state_groundtruth_estimate0"
+    if gt_dir.is_dir():
+        gt = read_groundtruth(gt_dir / "data.csv")
+    else:
+        log.info("%s: no state_groundtruth_estimate0, sequence has no ground truth", mav0)
+
+    depth_paths = None
+    depth_scale = DEPTH_SCALE
+    depth_dir = mav0 / "depth0"
+    if depth_dir.is_dir():
+        if (depth_dir / "sensor.yaml").is_file():
+            dy = load_sensor_yaml(depth_dir / "sensor.yaml")
+            if "depth_scale" in dy:
+                depth_scale = _float(dy["depth_scale"], "depth_scale", depth_dir / "sensor.yaml")
+                if depth_scale <= 0:
+                    raise EurocFormatError(f"{depth_dir / 'sensor.yaml'}: depth_scale must be positive")
+        dts, dnames, _ = _read_file_list(depth_dir / "data.csv")
+        dts, dpaths = _existing(depth_dir / "data.csv", depth_dir / "data", dts, dnames)
+        depth_paths = {int(t): p for t, p in zip(dts, dpaths, strict=True)}
+
+    seq = EurocSequence(
+        root=root,
+        camera=camera,
+        T_b_c=T_b_c,
+        cam_rate_hz=cam_rate,
+        frame_ts=frame_ts,
+        frame_paths=frame_paths,
+        imu_ts=imu_ts,
+        gyro=iv[:, 0:3].copy(),
+        accel=iv[:, 3:6].copy(),
+        imu=imu,
+        gt=gt,
+        depth_scale=depth_scale,
+        _depth_paths=depth_paths,
+    )
+    log.info("read %r", seq)
+    return seq

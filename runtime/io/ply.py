@@ -1,0 +1,201 @@
+"""PLY point clouds: binary little-endian writer (float32 x, y, z + optional uchar red, green, blue) and a
+reader for ``ascii``, ``binary_little_endian`` and ``binary_big_endian`` vertex data (MeshLab, CloudCompare,
+Open3D).
+
+Other elements (e.g. ``face``) after ``vertex`` are ignored; fixed-size elements before it are skipped.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["PlyFormatError", "write_ply", "read_ply"]
+
+# PLY scalar types -> numpy (both the classic and the sized names)
+_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+_RGB_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
+
+
+class PlyFormatError(ValueError):
+    """A PLY file is malformed or unsupported; the message names the file."""
+
+
+def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
+    """Write a point cloud as binary little-endian PLY.
+
+    Args:
+        path: output file (parent folders are created).
+        xyz: (N, 3) points [m] (any frame; stored as float32), all finite.
+        rgb: optional (N, 3) uint8 colours.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: bad shape, non-finite points, or colours that are not uint8.
+    """
+    path = Path(path)
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must have shape (N, 3), got {xyz.shape}")
+    if not np.issubdtype(xyz.dtype, np.number):
+        raise ValueError(f"xyz must be numeric, got dtype {xyz.dtype}")
+    finite = np.isfinite(xyz).all(axis=1)
+    if not finite.all():
+        raise ValueError(
+            f"xyz has {int((~finite).sum())} non-finite points (first at index {np.argmin(finite)})"
+        )
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        rgb = np.asarray(rgb)
+        if rgb.shape != xyz.shape:
+            raise ValueError(f"rgb must have shape {xyz.shape} like xyz, got {rgb.shape}")
+        if rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be uint8, got dtype {rgb.dtype}")
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    arr = np.empty(len(xyz), dtype=fields)
+    arr["x"], arr["y"], arr["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    if rgb is not None:
+        arr["red"], arr["green"], arr["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    header = ["ply", "format binary_little_endian 1.0", "comment written by dit-slam runtime.io.ply"]
+    header += [f"element vertex {len(xyz)}", "property float x", "property float y", "property float z"]
+    if rgb is not None:
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header.append("end_header")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(arr.tobytes())
+    return path
+
+
+def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list]]]:
+    """-> (format, [(element name, count, [(prop name, dtype | ('list', count dtype, item dtype))])])."""
+    if f.readline().strip() != b"ply":
+        raise PlyFormatError(f"{path}: not a PLY file (first line is not 'ply')")
+    fmt = None
+    elements: list[tuple[str, int, list]] = []
+    while True:
+        raw = f.readline()
+        if not raw:
+            raise PlyFormatError(f"{path}: header has no 'end_header'")
+        words = raw.decode("ascii", errors="replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        if words[0] == "format":
+            if len(words) < 2 or words[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                raise PlyFormatError(f"{path}: unsupported format line {raw!r}")
+            fmt = words[1]
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise PlyFormatError(f"{path}: malformed element line {raw!r}")
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if not elements:
+                raise PlyFormatError(f"{path}: property before any element: {raw!r}")
+            if len(words) == 5 and words[1] == "list":
+                if words[2] not in _TYPES or words[3] not in _TYPES:
+                    raise PlyFormatError(f"{path}: unknown list property type in {raw!r}")
+                elements[-1][2].append((words[4], ("list", _TYPES[words[2]], _TYPES[words[3]])))
+            elif len(words) == 3 and words[1] in _TYPES:
+                elements[-1][2].append((words[2], _TYPES[words[1]]))
+            else:
+                raise PlyFormatError(f"{path}: unsupported property line {raw!r}")
+        else:
+            raise PlyFormatError(f"{path}: unexpected header line {raw!r}")
+    if fmt is None:
+        raise PlyFormatError(f"{path}: header has no 'format' line")
+    return fmt, elements
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read the vertices of a PLY file.
+
+    Args:
+        path: ``.ply`` file (ascii or binary, either endianness).
+
+    Returns:
+        xyz (N, 3) float64 [file units], rgb (N, 3) uint8 or None when the vertices have no colour.
+
+    Raises:
+        PlyFormatError: missing file, malformed header, no vertex element or x/y/z, truncated data.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PlyFormatError(f"{path}: missing file")
+    with open(path, "rb") as f:
+        fmt, elements = _parse_header(path, f)
+        names = [e[0] for e in elements]
+        if "vertex" not in names:
+            raise PlyFormatError(f"{path}: no 'vertex' element")
+        vi = names.index("vertex")
+        _, n, props = elements[vi]
+        if any(isinstance(t, tuple) for _, t in props):
+            raise PlyFormatError(f"{path}: list properties in 'vertex' are not supported")
+        pnames = [p for p, _ in props]
+        for c in ("x", "y", "z"):
+            if c not in pnames:
+                raise PlyFormatError(f"{path}: vertex has no property '{c}' (has {pnames})")
+        if fmt == "ascii":
+            skip = 0
+            for _, count, _ in elements[:vi]:  # ascii: one line per item, lists included
+                skip += count
+            lines = f.read().decode("ascii", errors="replace").splitlines()
+            lines = [ln for ln in lines if ln.strip()][skip : skip + n]
+            if len(lines) < n:
+                raise PlyFormatError(f"{path}: expected {n} vertex lines, found {len(lines)}")
+            try:
+                table = np.loadtxt(lines, dtype=np.float64, ndmin=2, usecols=range(len(pnames)))
+            except ValueError as e:
+                raise PlyFormatError(f"{path}: malformed vertex data ({e})") from None
+            cols = {p: table[:, j] for j, p in enumerate(pnames)}
+            types = dict(props)
+        else:
+            order = "<" if fmt == "binary_little_endian" else ">"
+            for name, count, eprops in elements[:vi]:
+                if any(isinstance(t, tuple) for _, t in eprops):
+                    raise PlyFormatError(
+                        f"{path}: element '{name}' with list properties before 'vertex' is unsupported"
+                    )
+                f.seek(count * np.dtype([(p, order + t) for p, t in eprops]).itemsize, 1)
+            dtype = np.dtype([(p, order + t) for p, t in props])
+            buf = f.read(n * dtype.itemsize)
+            if len(buf) < n * dtype.itemsize:
+                raise PlyFormatError(
+                    f"{path}: truncated vertex data ({len(buf)} of {n * dtype.itemsize} bytes)"
+                )
+            arr = np.frombuffer(buf, dtype=dtype, count=n)
+            cols = {p: arr[p] for p in pnames}
+            types = dict(props)
+    xyz = np.stack([cols["x"], cols["y"], cols["z"]], -1).astype(np.float64)
+    rgb = None
+    for trio in _RGB_NAMES:
+        if all(c in cols for c in trio):
+            kind = np.dtype(types[trio[0]]).kind
+            c = np.stack([cols[k] for k in trio], -1).astype(np.float64)
+            if kind == "f":  # float colours are in [0, 1]
+                c = c * 255.0
+            rgb = np.clip(np.rint(c), 0, 255).astype(np.uint8)
+            break
+    return xyz, rgb

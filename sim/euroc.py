@@ -1,0 +1,428 @@
+"""Synthetic sequences in the EuRoC ASL layout (cam0, imu0, ground truth, plus depth0).
+
+Layout written under ``out``::
+
+    out/sim_info.json                              what was rendered (seed, preset, white-wall window, ...)
+    out/mav0/cam0/{data.csv, data/<ts>.png, sensor.yaml}    752x480 grey, 20 Hz, EuRoC cam0 intrinsics, radtan
+    out/mav0/imu0/{data.csv, sensor.yaml}                   200 Hz gyro (w_RS_S), accel (a_RS_S), ADIS16448
+    out/mav0/state_groundtruth_estimate0/data.csv           200 Hz p, q (w,x,y,z), v, b_w, b_a of the body
+    out/mav0/depth0/{data.csv, data/<ts>.png, sensor.yaml}  uint16 PNG, cam0 z-depth [m] * 5000, 0 = invalid
+
+IMU, ground truth and camera share one clock: ``t_k = T0_NS + k * 5 ms``, a camera frame every 10th sample.
+IMU sample k holds over ``[t_k, t_k+1)``; with ``imu_noise=False`` GTSAM's preintegration of samples
+``i..j-1`` reproduces the ground-truth state j from state i (see :mod:`sim.imu`). Images are rendered at the
+ground-truth body poses through cam0's ``T_BS``: ``T_w_c = T_w_b @ T_b_c``.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from runtime.geometry import Camera, R_to_quat_wxyz
+from sim.imu import EUROC_ADIS16448, ImuNoise, add_imu_noise, synthesize_imu
+from sim.render import Renderer
+from sim.scenes import PRESETS, Scene, make_scene
+from sim.trajectory import Trajectory, make_trajectory
+
+__all__ = [
+    "EUROC_CAM0",
+    "EUROC_T_B_C0",
+    "IMU_RATE_HZ",
+    "CAM_EVERY",
+    "T0_NS",
+    "DEPTH_SCALE",
+    "scaled_camera",
+    "SequenceData",
+    "simulate_sequence",
+    "write_euroc_sequence",
+]
+
+#: EuRoC cam0 (MT9M034): intrinsics [fu, fv, cu, cv], radial-tangential distortion, resolution.
+EUROC_CAM0 = Camera(
+    458.654, 457.296, 367.215, 248.375, 752, 480, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
+)
+#: EuRoC cam0 ``T_BS``: pose of cam0 in the body (IMU) frame.
+EUROC_T_B_C0 = np.array(
+    [
+        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+IMU_RATE_HZ = 200
+CAM_EVERY = 10  # one camera frame per 10 IMU samples: 20 Hz
+DT_NS = 1_000_000_000 // IMU_RATE_HZ
+T0_NS = 1_700_000_000_000_000_000  # first timestamp [ns]
+DEPTH_SCALE = 5000.0  # depth0 PNG value per metre
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+GENERATOR = "dit-sim"
+
+
+def scaled_camera(scale: float = 1.0, base: Camera = EUROC_CAM0) -> Camera:
+    """``base`` resampled by ``scale`` (pixel centres: ``u' = scale (u + 0.5) - 0.5``); 1.0 gives ``base``.
+
+    >>> cam = scaled_camera(0.5)
+    >>> (cam.width, cam.height, cam.fx == EUROC_CAM0.fx / 2)
+    (376, 240, True)
+    """
+    if scale <= 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    if scale == 1.0:
+        return base
+    return Camera(
+        base.fx * scale,
+        base.fy * scale,
+        (base.cx + 0.5) * scale - 0.5,
+        (base.cy + 0.5) * scale - 0.5,
+        int(round(base.width * scale)),
+        int(round(base.height * scale)),
+        base.dist,
+    )
+
+
+@dataclass
+class SequenceData:
+    """Everything of a sequence except the images.
+
+    Attributes:
+        ts: (N,) int64 IMU / ground-truth timestamps [ns].
+        gyro, accel: (N, 3) IMU samples (rad/s, m/s^2), noisy when requested.
+        R_w_b: (N, 3, 3), p_w_b: (N, 3), v_w: (N, 3): discrete ground-truth body states.
+        bg, ba: (N, 3) true biases (zero without IMU noise).
+        frame_idx: (F,) indices into ``ts`` of the camera frames.
+        window: whitewall hold (t0, t1) [s] after the first sample, or None.
+        scene: the grey scene the frames are rendered from.
+        trajectory: the smooth camera trajectory the states were sampled from.
+    """
+
+    ts: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    R_w_b: np.ndarray
+    p_w_b: np.ndarray
+    v_w: np.ndarray
+    bg: np.ndarray
+    ba: np.ndarray
+    frame_idx: np.ndarray
+    window: tuple[float, float] | None
+    scene: Scene | None = None
+    trajectory: Trajectory | None = None
+
+    def T_w_b(self, k: int | np.ndarray) -> np.ndarray:
+        """Ground-truth body pose(s) at sample index(es) ``k``: (4, 4) or (K, 4, 4)."""
+        k = np.asarray(k)
+        T = np.zeros(k.shape + (4, 4))
+        T[..., :3, :3] = self.R_w_b[k]
+        T[..., :3, 3] = self.p_w_b[k]
+        T[..., 3, 3] = 1.0
+        return T
+
+
+def _check_args(preset: str, duration: float, seed: int) -> None:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; expected one of {PRESETS}")
+    if not np.isfinite(duration) or duration <= 0:
+        raise ValueError(f"duration must be a positive number of seconds, got {duration}")
+    if int(seed) != seed or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed}")
+
+
+def simulate_sequence(
+    preset: str = "textured",
+    duration: float = 10.0,
+    seed: int = 0,
+    imu_noise: bool = True,
+    noise: ImuNoise = EUROC_ADIS16448,
+    T_b_c: np.ndarray = EUROC_T_B_C0,
+) -> SequenceData:
+    """Scene, trajectory, IMU and ground truth of a sequence (no rendering, no files).
+
+    Args:
+        preset: ``textured`` or ``whitewall``.
+        duration: length [s]; ``round(duration * 200)`` IMU samples.
+        seed: scene, trajectory and noise seed.
+        imu_noise: add white noise and random-walk biases.
+        noise: the IMU noise model.
+        T_b_c: cam0 pose in the body frame.
+
+    Returns:
+        The :class:`SequenceData` (``scene`` is the grey scene, ``trajectory`` the smooth camera path).
+    """
+    _check_args(preset, duration, seed)
+    scene = make_scene(seed, preset, rgb=False)
+    traj = make_trajectory(scene, duration, seed, preset)
+    n = int(round(duration * IMU_RATE_HZ))
+    if n < 2:
+        raise ValueError(f"duration {duration} s gives fewer than 2 IMU samples")
+    dt = DT_NS * 1e-9
+    t = np.arange(n + 1) * dt
+    R_w_b, p_w_b = traj.body_pose(t, T_b_c)
+    v_w = traj.body_velocity(t, T_b_c)
+    gyro, accel, p = synthesize_imu(R_w_b, v_w, p_w_b[0], dt)
+    if imu_noise:
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1A0]))
+        gyro, accel, bg, ba = add_imu_noise(gyro, accel, dt, rng, noise)
+    else:
+        bg = ba = np.zeros((n, 3))
+    return SequenceData(
+        ts=T0_NS + DT_NS * np.arange(n, dtype=np.int64),
+        gyro=gyro,
+        accel=accel,
+        R_w_b=R_w_b[:n],
+        p_w_b=p[:n],
+        v_w=v_w[:n],
+        bg=bg,
+        ba=ba,
+        frame_idx=np.arange(0, n, CAM_EVERY),
+        window=traj.window,
+        scene=scene,
+        trajectory=traj,
+    )
+
+
+# --------------------------------------------------------------------------- files
+def _yaml_matrix(T: np.ndarray, indent: str = "         ") -> str:
+    rows = [", ".join(repr(float(x)) for x in r) for r in T]
+    return "[" + (",\n" + indent).join(rows) + "]"
+
+
+def _cam_yaml(cam: Camera, T_b_c: np.ndarray, rate: int, depth: bool = False) -> str:
+    head = "%YAML:1.0\n# General sensor definitions.\n" + (
+        "sensor_type: depth\ncomment: ground-truth z-depth of cam0 (same pixel grid), rendered by dit-sim\n"
+        if depth
+        else "sensor_type: camera\ncomment: VI-Sensor cam0 (MT9M034), rendered by dit-sim\n"
+    )
+    body = (
+        "\n# Sensor extrinsics wrt. the body-frame.\nT_BS:\n  cols: 4\n  rows: 4\n"
+        f"  data: {_yaml_matrix(T_b_c)}\n\n# Camera specific definitions.\nrate_hz: {rate}\n"
+        f"resolution: [{cam.width}, {cam.height}]\ncamera_model: pinhole\n"
+        f"intrinsics: [{cam.fx!r}, {cam.fy!r}, {cam.cx!r}, {cam.cy!r}] #fu, fv, cu, cv\n"
+        "distortion_model: radial-tangential\n"
+        f"distortion_coefficients: [{', '.join(repr(float(d)) for d in cam.dist)}]\n"
+    )
+    if depth:
+        body += f"depth_scale: {DEPTH_SCALE!r}  # PNG value = depth [m] * depth_scale, 0 = invalid\n"
+    return head + body
+
+
+def _imu_yaml(noise: ImuNoise) -> str:
+    return (
+        "#Default imu sensor yaml file\nsensor_type: imu\n"
+        "comment: VI-Sensor IMU (ADIS16448), simulated by dit-sim\n\n"
+        "# Sensor extrinsics wrt. the body-frame.\nT_BS:\n  cols: 4\n  rows: 4\n"
+        f"  data: {_yaml_matrix(np.eye(4))}\nrate_hz: {IMU_RATE_HZ}\n\n"
+        "# inertial sensor noise model parameters (static)\n"
+        f"gyroscope_noise_density: {noise.gyro_noise_density!r}  # [ rad / s / sqrt(Hz) ] (white noise)\n"
+        f"gyroscope_random_walk: {noise.gyro_random_walk!r}  # [ rad / s^2 / sqrt(Hz) ] (bias diffusion)\n"
+        f"accelerometer_noise_density: {noise.accel_noise_density!r}  # [ m / s^2 / sqrt(Hz) ] (white)\n"
+        f"accelerometer_random_walk: {noise.accel_random_walk!r}  # [ m / s^3 / sqrt(Hz) ] (bias diffusion)\n"
+    )
+
+
+IMU_HEADER = (
+    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
+)
+GT_HEADER = (
+    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
+    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+)
+
+
+def _write_csv(path: Path, header: str, ts: np.ndarray, values: np.ndarray) -> None:
+    """int64 timestamps and float64 values (shortest exact round-trip text via %.17g)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    vals = np.asarray(values, dtype=np.float64)
+    fmt = ",".join(["%.17g"] * vals.shape[1])
+    lines = [header]
+    lines += [f"{int(t)}," + (fmt % tuple(row)) for t, row in zip(ts, vals, strict=True)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _write_file_list(path: Path, ts: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("#timestamp [ns],filename\n" + "".join(f"{int(t)},{int(t)}.png\n" for t in ts))
+
+
+def prepare_output(out: Path, parts: tuple[str, ...]) -> None:
+    """Create ``out``; remove earlier dit-sim output (``parts`` below ``out``) but never anything else.
+
+    Raises:
+        FileExistsError: ``out`` holds one of ``parts`` that dit-sim did not write (no ``sim_info.json``).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    existing = [out / p for p in parts if (out / p).exists()]
+    if not existing:
+        return
+    info = out / "sim_info.json"
+    ours = False
+    if info.is_file():
+        try:
+            ours = json.loads(info.read_text()).get("generator") == GENERATOR
+        except (OSError, ValueError):
+            ours = False
+    if not ours:
+        raise FileExistsError(
+            f"{existing[0]} exists and was not written by {GENERATOR} (no {info}); "
+            "choose another output folder"
+        )
+    for p in existing:
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+    info.unlink()
+
+
+# --------------------------------------------------------------------------- rendering (maybe in workers)
+_WORKER: dict = {}
+
+
+def _init_render(key: tuple, cam: Camera, noise_sigma: float, cam_dir: str, depth_dir: str) -> None:
+    """Build the scene and renderer of ``key = (seed, preset)`` once per process (unless already there)."""
+    cv2.setNumThreads(1)
+    if _WORKER.get("key") != (key, cam):
+        seed, preset = key
+        _WORKER.update(key=(key, cam), renderer=Renderer(make_scene(seed, preset, rgb=False), cam))
+    _WORKER.update(noise_sigma=noise_sigma, cam_dir=Path(cam_dir), depth_dir=Path(depth_dir), seed=key[0])
+
+
+def _render_frame(job: tuple[int, int, np.ndarray]) -> int:
+    """Render frame ``k`` (timestamp ``ts``, pose ``T_w_c``), write its image and depth PNGs; returns 1."""
+    k, ts, T_w_c = job
+    w = _WORKER
+    rng = np.random.default_rng(np.random.SeedSequence([w["seed"], 0xCA0, int(k)]))
+    img, depth = w["renderer"].render(T_w_c, rng, w["noise_sigma"])
+    d = np.rint(depth.astype(np.float64) * DEPTH_SCALE)
+    d[(d > 65535) | ~np.isfinite(d)] = 0  # beyond 13.1 m: invalid
+    if not cv2.imwrite(str(w["cam_dir"] / f"{ts}.png"), img, PNG_PARAMS):
+        raise OSError(f"could not write {w['cam_dir'] / f'{ts}.png'}")
+    if not cv2.imwrite(str(w["depth_dir"] / f"{ts}.png"), d.astype(np.uint16), PNG_PARAMS):
+        raise OSError(f"could not write {w['depth_dir'] / f'{ts}.png'}")
+    return 1
+
+
+def run_jobs(
+    jobs: list, init, init_args: tuple, fn, workers: int, progress: bool, desc: str, total: int
+) -> None:
+    """Run ``fn`` over ``jobs`` here (workers <= 1) or in a spawn pool; ``fn`` returns the frames it wrote.
+
+    ``init(*init_args)`` prepares each process; the tqdm bar counts frames up to ``total``.
+    """
+    bar = tqdm(total=total, desc=desc, unit="frame", disable=not progress, dynamic_ncols=True)
+    try:
+        if workers <= 1 or len(jobs) < 2:
+            init(*init_args)
+            for job in jobs:
+                bar.update(fn(job))
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(min(workers, len(jobs)), initializer=init, initargs=init_args) as pool:
+                for n in pool.imap_unordered(fn, jobs, chunksize=1 if len(jobs) < 64 else 4):
+                    bar.update(n)
+    finally:
+        bar.close()
+
+
+def write_euroc_sequence(
+    out: str | Path,
+    preset: str = "textured",
+    duration: float = 10.0,
+    seed: int = 0,
+    imu_noise: bool = True,
+    progress: bool = True,
+    *,
+    scale: float = 1.0,
+    workers: int = 1,
+    noise_sigma: float = 1.0,
+) -> Path:
+    """Render a sequence and write it in the EuRoC ASL layout (plus ``depth0``).
+
+    Args:
+        out: folder to write (it will contain ``mav0`` and ``sim_info.json``); earlier dit-sim output there is
+            replaced, anything else raises ``FileExistsError``.
+        preset: ``textured`` or ``whitewall`` (needs ``duration >= 24`` s; ``sim_info.json`` gives the
+            white-wall window).
+        duration: length [s]; ``round(duration * 200)`` IMU / ground-truth samples, one frame per 10.
+        seed: same seed, same bytes.
+        imu_noise: white noise + bias random walk (EuRoC ADIS16448 densities); else exact IMU and zero biases.
+        progress: show a tqdm bar.
+        scale: image resolution factor (tests only; 1.0 is EuRoC's 752x480, intrinsics are scaled with it).
+        workers: rendering processes (1 = in this process).
+        noise_sigma: image noise [grey levels].
+
+    Returns:
+        ``out`` as a Path (the folder that contains ``mav0``).
+    """
+    _check_args(preset, duration, seed)
+    out = Path(out)
+    cam = scaled_camera(scale)
+    data = simulate_sequence(preset, duration, int(seed), imu_noise)
+    prepare_output(out, ("mav0",))
+    mav0 = out / "mav0"
+    cam_dir, depth_dir = mav0 / "cam0" / "data", mav0 / "depth0" / "data"
+    cam_dir.mkdir(parents=True)
+    depth_dir.mkdir(parents=True)
+    imu_dir, gt_dir = mav0 / "imu0", mav0 / "state_groundtruth_estimate0"
+
+    cam_rate = IMU_RATE_HZ // CAM_EVERY
+    (mav0 / "cam0" / "sensor.yaml").write_text(_cam_yaml(cam, EUROC_T_B_C0, cam_rate))
+    (mav0 / "depth0" / "sensor.yaml").write_text(_cam_yaml(cam, EUROC_T_B_C0, cam_rate, depth=True))
+    imu_dir.mkdir(parents=True)
+    (imu_dir / "sensor.yaml").write_text(_imu_yaml(EUROC_ADIS16448))
+    _write_csv(imu_dir / "data.csv", IMU_HEADER, data.ts, np.concatenate([data.gyro, data.accel], 1))
+    q = R_to_quat_wxyz(data.R_w_b)
+    gt = np.concatenate([data.p_w_b, q, data.v_w, data.bg, data.ba], 1)
+    _write_csv(gt_dir / "data.csv", GT_HEADER, data.ts, gt)
+    frame_ts = data.ts[data.frame_idx]
+    _write_file_list(mav0 / "cam0" / "data.csv", frame_ts)
+    _write_file_list(mav0 / "depth0" / "data.csv", frame_ts)
+
+    T_w_c = data.T_w_b(data.frame_idx) @ EUROC_T_B_C0
+    jobs = [(int(k), int(ts), T) for k, ts, T in zip(data.frame_idx, frame_ts, T_w_c, strict=True)]
+    if workers <= 1:  # reuse the scene built above instead of building it again
+        _WORKER.update(key=((int(seed), preset), cam), renderer=Renderer(data.scene, cam))
+    run_jobs(
+        jobs,
+        _init_render,
+        ((int(seed), preset), cam, float(noise_sigma), str(cam_dir), str(depth_dir)),
+        _render_frame,
+        workers,
+        progress,
+        f"euroc {preset}",
+        len(jobs),
+    )
+    window = data.window
+    info = {
+        "generator": GENERATOR,
+        "job": "euroc",
+        "preset": preset,
+        "seed": int(seed),
+        "duration_s": float(duration),
+        "imu_noise": bool(imu_noise),
+        "scale": float(scale),
+        "noise_sigma": float(noise_sigma),
+        "resolution": [cam.width, cam.height],
+        "frames": int(len(frame_ts)),
+        "imu_samples": int(len(data.ts)),
+        "t0_ns": int(data.ts[0]),
+        "imu_rate_hz": IMU_RATE_HZ,
+        "cam_rate_hz": cam_rate,
+        "rest_s": float(data.trajectory.t_rest),
+        "whitewall_window_s": None if window is None else [float(window[0]), float(window[1])],
+        "whitewall_window_ns": None
+        if window is None
+        else [int(data.ts[0] + round(window[0] * 1e9)), int(data.ts[0] + round(window[1] * 1e9))],
+        "room_size_m": [float(x) for x in data.scene.size],
+        "boxes": len(data.scene.names),
+        "imu_convention": "sample k holds over [t_k, t_k+1); gyro then accel (specific force), body frame",
+    }
+    (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
+    return out

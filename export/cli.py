@@ -18,6 +18,8 @@ def run(cfg: DictConfig) -> dict:
     from export.checkpoint import load_checkpoint
     from export.onnx import export_network
 
+    for noisy in ("onnx_ir", "onnxscript", "torch.onnx"):  # per-pass INFO lines drown the result
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     ckpt = Path(str(cfg.ckpt)).expanduser()
     loaded = load_checkpoint(ckpt)
     parity_inputs = None

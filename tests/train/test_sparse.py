@@ -1,0 +1,78 @@
+"""FAST sparse-depth sampling: counts, values, noise."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from train.sparse import MIN_SPARSE_DEPTH, SparseConfig, fast_corners, sample_sparse_depth
+
+
+def _textured(h=96, w=128, seed=0):
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur((rng.random((h, w)) * 255).astype(np.uint8), (3, 3), 0)
+    depth = (1.0 + rng.random((h, w)) * 3.0).astype(np.float32)
+    return img, depth
+
+
+def test_eval_exactly_125_noise_free_at_corners():
+    img, depth = _textured()
+    corners = {tuple(c) for c in fast_corners(img).tolist()}
+    assert len(corners) > 125
+    sparse, uv = sample_sparse_depth(img, depth, np.random.default_rng(1), train=False)
+    assert len(uv) == 125 and int((sparse > 0).sum()) == 125
+    np.testing.assert_array_equal(sparse[uv[:, 1], uv[:, 0]], depth[uv[:, 1], uv[:, 0]])
+    assert {tuple(c) for c in uv.tolist()} <= corners
+    # deterministic for a given generator seed
+    sparse2, _ = sample_sparse_depth(img, depth, np.random.default_rng(1), train=False)
+    np.testing.assert_array_equal(sparse, sparse2)
+
+
+def test_eval_fills_up_with_valid_pixels_and_skips_invalid():
+    img = cv2.GaussianBlur(np.pad(np.full((20, 20), 200, np.uint8), 20), (3, 3), 0)  # 4 corners only
+    depth = np.full(img.shape, 2.5, np.float32)
+    depth[:, :10] = 0.0  # invalid band
+    sparse, uv = sample_sparse_depth(img, depth, np.random.default_rng(0), train=False)
+    assert len(fast_corners(img)) == 4
+    assert len(uv) == 125 and int((sparse > 0).sum()) == 125  # 4 corners + 121 random valid pixels
+    assert (uv[:, 0] >= 10).all() and np.all(sparse[uv[:, 1], uv[:, 0]] == 2.5)
+    # without fill: only the corners
+    _, uv = sample_sparse_depth(
+        img, depth, np.random.default_rng(0), train=False, cfg=SparseConfig(fill=False)
+    )
+    assert len(uv) == 4
+    # fewer valid pixels than 125: all of them
+    depth[:] = 0.0
+    depth[5, :30] = 1.0
+    _, uv = sample_sparse_depth(img, depth, np.random.default_rng(0), train=False)
+    assert len(uv) == 30
+
+
+def test_train_random_subset_with_noise_std_0p1():
+    img, depth = _textured(192, 256)
+    depth[:] = 3.0
+    cfg = SparseConfig(train_num=(60, 120))
+    noise, counts = [], []
+    for s in range(20):
+        sparse, uv = sample_sparse_depth(img, depth, np.random.default_rng(s), train=True, cfg=cfg)
+        counts.append(len(uv))
+        noise.append(sparse[uv[:, 1], uv[:, 0]] - 3.0)
+    noise = np.concatenate(noise)
+    assert all(60 <= c <= 120 for c in counts) and len(set(counts)) > 5
+    assert noise.std() == pytest.approx(0.1, rel=0.1)
+    assert abs(noise.mean()) < 0.02
+    # noisy values stay positive (0 means "no sample")
+    depth[:] = 0.05
+    sparse, uv = sample_sparse_depth(img, depth, np.random.default_rng(0), train=True, cfg=cfg)
+    assert sparse[uv[:, 1], uv[:, 0]].min() >= MIN_SPARSE_DEPTH
+
+
+def test_bad_inputs():
+    img, depth = _textured()
+    with pytest.raises(ValueError, match="depth has shape"):
+        sample_sparse_depth(img, depth[:, :5], np.random.default_rng(0), train=False)
+    with pytest.raises(ValueError, match="uint8"):
+        fast_corners(img.astype(np.float32))
+    with pytest.raises(ValueError, match="train_num"):
+        SparseConfig(train_num=(5, 2))

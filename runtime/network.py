@@ -19,6 +19,11 @@ import numpy as np
 MODALITY_CHANNELS = {"rgb": 3, "rgbs": 4, "gray": 1, "grays": 2}
 
 
+def default_model_dir() -> Path:
+    """The shipped default model (``runtime/assets/default_model``; how it was made: its README.md)."""
+    return Path(__file__).resolve().parent / "assets" / "default_model"
+
+
 class ModelError(ValueError):
     """A model directory that is missing, inconsistent, or does not match what the caller needs."""
 

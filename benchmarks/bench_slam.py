@@ -1,0 +1,288 @@
+"""Benchmark of the sparse VI-SLAM on synthetic EuRoC-layout sequences: ATE, RPE, FPS, time per stage.
+
+    python benchmarks/bench_slam.py                      # textured + whitewall, 60 s, IMU noise, seeds 0 1 2
+    python benchmarks/bench_slam.py --seeds 0 --duration 20 --set backend.window_size=8
+    python benchmarks/bench_slam.py --detectors          # gftt vs fast vs orb: detection time, track life,
+    ATE
+
+Sequences are rendered with ``sim`` into ``--data`` once (reused afterwards). Every run is a fresh system in
+this process, one after another; FPS is frames / wall time of the whole run (image decoding included). The
+machine is shared and noisy: compare ratios measured in one invocation. Prints a table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from runtime.cli import default_sequence  # noqa: E402
+from runtime.io.euroc import read_euroc  # noqa: E402
+from runtime.slam import SlamConfig, run_sequence  # noqa: E402
+
+STAGES = (
+    "read",
+    "imu",
+    "track",
+    "refine",
+    "keyframe",
+    "detect",
+    "triangulate",
+    "reloc",
+    "optimize",
+    "marginalize",
+    "init",
+)
+
+
+def _load_preset(name: str) -> dict:
+    import yaml
+
+    path = ROOT / "conf" / "runtime" / f"{name}.yaml"
+    if not path.is_file():
+        raise SystemExit(f"bench_slam: no runtime preset {path}")
+    return yaml.safe_load(path.read_text()) or {}
+
+
+def _apply(d: dict, key: str, value: str) -> None:
+    import yaml
+
+    parts = key.split(".")
+    for p in parts[:-1]:
+        d = d.setdefault(p, {})
+    d[parts[-1]] = yaml.safe_load(value)
+
+
+def make_config(preset: str, overrides: list[str]) -> SlamConfig:
+    d = _load_preset(preset)
+    for o in overrides:
+        k, sep, v = o.partition("=")
+        if not sep:
+            raise SystemExit(f"bench_slam: --set needs key=value, got {o!r}")
+        _apply(d, k, v)
+    return SlamConfig.from_dict(d)
+
+
+def run_one(root: Path, cfg: SlamConfig, out: Path) -> dict:
+    seq = read_euroc(root)
+    m = run_sequence(seq, out, cfg, progress=False, plot=True)
+    return m
+
+
+def fmt_table(rows: list[dict]) -> str:
+    head = (
+        f"{'preset':10s} {'seed':>4s} {'ATE SE3 m':>10s} {'ATE Sim3 m':>10s} {'RPE m/1s':>9s} "
+        f"{'RPE deg/1s':>10s} "
+        f"{'FPS':>6s} {'ms/frame':>8s} {'KF':>4s}"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r['preset']:10s} {r['seed']:>4d} {r.get('ate_se3_rmse_m', float('nan')):10.4f} "
+            f"{r.get('ate_sim3_rmse_m', float('nan')):10.4f} {r.get('rpe_trans_rmse_m', float('nan')):9.4f} "
+            f"{r.get('rpe_rot_rmse_deg', float('nan')):10.3f} {r['fps']:6.1f} {1e3 / r['fps']:8.1f} "
+            f"{r['keyframes']:4d}"
+        )
+    return "\n".join(lines)
+
+
+def fmt_stages(rows: list[dict]) -> str:
+    keys = [k for k in STAGES if any(k in r["timing_ms_per_frame"] for r in rows)]
+    head = f"{'preset':10s} {'seed':>4s} " + " ".join(f"{k[:9]:>9s}" for k in keys)
+    lines = ["per-stage time [ms per frame]", head, "-" * len(head)]
+    for r in rows:
+        t = r["timing_ms_per_frame"]
+        lines.append(f"{r['preset']:10s} {r['seed']:>4d} " + " ".join(f"{t.get(k, 0.0):9.2f}" for k in keys))
+    return "\n".join(lines)
+
+
+def summary(rows: list[dict]) -> dict:
+    out = {}
+    for preset in sorted({r["preset"] for r in rows}):
+        rs = [r for r in rows if r["preset"] == preset]
+        ate = np.array([r.get("ate_se3_rmse_m", np.nan) for r in rs])
+        out[preset] = {
+            "runs": len(rs),
+            "ate_se3_rmse_m_mean": float(np.nanmean(ate)),
+            "ate_se3_rmse_m_max": float(np.nanmax(ate)),
+            "rpe_trans_rmse_m_mean": float(np.nanmean([r.get("rpe_trans_rmse_m", np.nan) for r in rs])),
+            "rpe_rot_rmse_deg_mean": float(np.nanmean([r.get("rpe_rot_rmse_deg", np.nan) for r in rs])),
+            "fps_mean": float(np.mean([r["fps"] for r in rs])),
+            "fps_min": float(np.min([r["fps"] for r in rs])),
+        }
+    return out
+
+
+def detector_study(args) -> dict:
+    """Detection time and track quality of gftt / fast / orb on one sequence, then SLAM with each."""
+    import cv2
+
+    from runtime.backend.imu import ImuStream, integrate_rotation
+    from runtime.frontend.features import FeatureConfig, FeatureDetector
+    from runtime.frontend.tracking import FeatureTracker, TrackerConfig
+
+    root = default_sequence("textured", args.duration, args.seeds[0], True, args.data, progress=True)
+    seq = read_euroc(root)
+    imu = ImuStream.from_sequence(seq)
+    n = min(len(seq), int(args.detector_frames))
+    images = [seq.image(i) for i in range(n)]
+    res = {}
+    for det in ("gftt", "fast", "orb"):
+        fcfg = FeatureConfig(detector=det)
+        d = FeatureDetector(seq.camera.width, seq.camera.height, fcfg)
+        t0 = time.perf_counter()
+        for img in images[:: max(1, n // 50)]:
+            d.detect(img)
+        t_det = (time.perf_counter() - t0) / len(images[:: max(1, n // 50)]) * 1e3
+        trk = FeatureTracker(seq.camera, seq.T_b_c, fcfg, TrackerConfig())
+        births, deaths, born = {}, [], 0
+        prev_ts = None
+        for i, img in enumerate(images):
+            ts = int(seq.frame_ts[i])
+            R = None
+            if prev_ts is not None:
+                g, _, dt = imu.segment(prev_ts, ts)
+                R = integrate_rotation(g, dt)
+            before = set(trk.ids.tolist())
+            f = trk.track(ts, img, R)
+            after = set(f.ids.tolist())
+            for j in before - after:
+                deaths.append(i - births.pop(j))
+            if i % 5 == 0 or f.ids.size < 100:
+                f = trk.replenish(ts, img)
+                for j in set(f.ids.tolist()) - after:
+                    births[j] = i
+                born += len(set(f.ids.tolist()) - after)
+            prev_ts = ts
+        life = np.array(deaths + [n - b for b in births.values()], dtype=float)
+        cfg = make_config(args.runtime, args.set + [f"features.detector={det}"])
+        m = run_one(root, cfg, Path(args.out) / f"detector_{det}")
+        res[det] = {
+            "detect_ms": t_det,
+            "mean_track_life_frames": float(life.mean()) if life.size else 0.0,
+            "median_track_life_frames": float(np.median(life)) if life.size else 0.0,
+            "tracks_started": born,
+            "slam_ate_se3_rmse_m": m.get("ate_se3_rmse_m"),
+            "slam_fps": m["fps"],
+            "slam_track_ms": m["timing_ms_per_frame"].get("track"),
+            "slam_detect_ms": m["timing_ms_per_frame"].get("detect"),
+        }
+        print(
+            f"{det:5s} detect {t_det:6.2f} ms  track life mean "
+            f"{res[det]['mean_track_life_frames']:6.1f} frames  "
+            f"SLAM ATE {res[det]['slam_ate_se3_rmse_m']:.4f} m  {m['fps']:.1f} FPS",
+            flush=True,
+        )
+    del cv2
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--presets", nargs="+", default=["textured", "whitewall"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--no-imu-noise", action="store_true", help="exact IMU (default: noise on)")
+    ap.add_argument("--runtime", default="default", help="conf/runtime/<name>.yaml preset")
+    ap.add_argument("--set", nargs="*", default=[], help="overrides key=value of the runtime config")
+    ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench"), help="sequence cache folder")
+    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_slam"))
+    ap.add_argument("--detectors", action="store_true", help="compare gftt / fast / orb instead")
+    ap.add_argument("--detector-frames", type=int, default=400)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    machine = {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "loadavg_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
+    }
+    if args.detectors:
+        res = detector_study(args)
+        (out / "bench_detectors.json").write_text(
+            json.dumps({"machine": machine, "detectors": res}, indent=2)
+        )
+        print(f"wrote {out / 'bench_detectors.json'}")
+        return 0
+    rows = []
+    for preset in args.presets:
+        for seed in args.seeds:
+            root = default_sequence(
+                preset, args.duration, seed, not args.no_imu_noise, args.data, progress=True
+            )
+            cfg = make_config(args.runtime, args.set)
+            t0 = time.perf_counter()
+            m = run_one(root, cfg, out / f"{preset}_s{seed}")
+            row = {"preset": preset, "seed": seed, "sequence": str(root), "wall_s": time.perf_counter() - t0}
+            row.update(
+                {
+                    k: m[k]
+                    for k in (
+                        "frames",
+                        "frames_with_pose",
+                        "keyframes",
+                        "fps",
+                        "timing_ms_per_frame",
+                        "n_events",
+                    )
+                }
+            )
+            for k in (
+                "ate_se3_rmse_m",
+                "ate_sim3_rmse_m",
+                "sim3_scale",
+                "rpe_trans_rmse_m",
+                "rpe_rot_rmse_deg",
+                "path_length_m",
+                "error",
+            ):
+                if k in m:
+                    row[k] = m[k]
+            rows.append(row)
+            print(
+                f"{preset} seed {seed}: ATE {row.get('ate_se3_rmse_m', float('nan')):.4f} m, "
+                f"{row['fps']:.1f} FPS",
+                flush=True,
+            )
+    machine["loadavg_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    print()
+    print(fmt_table(rows))
+    print()
+    print(fmt_stages(rows))
+    summ = summary(rows)
+    print()
+    for p, s in summ.items():
+        print(
+            f"{p}: ATE SE3 mean {s['ate_se3_rmse_m_mean']:.4f} m, max {s['ate_se3_rmse_m_max']:.4f} m; "
+            f"FPS mean {s['fps_mean']:.1f}, min {s['fps_min']:.1f}"
+        )
+    res = {
+        "command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else sys.argv[1:])]),
+        "machine": machine,
+        "duration_s": args.duration,
+        "imu_noise": not args.no_imu_noise,
+        "runtime": args.runtime,
+        "overrides": args.set,
+        "runs": rows,
+        "summary": summ,
+    }
+    (out / "bench_slam.json").write_text(json.dumps(res, indent=2))
+    print(f"wrote {out / 'bench_slam.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,725 @@
+"""Sliding-window visual-inertial factor graph on GTSAM, solved by Levenberg-Marquardt (Sec. 5.1, Eq. 9-12).
+
+Variables (keys as DESIGN.md): ``X(i)`` Pose3 ``T_w_b``, ``V(i)`` velocity in w, ``B(i)`` IMU bias of active
+keyframe ``i``; ``L(j)`` Point3 landmark in w for track ``j``; extra per-keyframe variables (the depth codes
+``C(k)`` of the dense system) come from :class:`FactorProvider` plug-ins.
+
+Factors rebuilt at each optimisation:
+
+* the marginal prior on the oldest active keyframe (``LinearContainerFactor`` from eliminating the states that
+  left the window; the first keyframe has the initialisation priors instead);
+* ``CombinedImuFactor`` between consecutive active keyframes (Eq. 11-12, bias random walk included);
+* zero-motion factors between keyframes taken at rest (a still camera gives a still trajectory);
+* ``GenericProjectionFactorCal3_S2`` with ``body_P_sensor = T_b_c`` and a Huber kernel for every observation
+  of a landmark by an active keyframe, and (``anchor_old_observations``) by the last keyframes that left the
+  window, whose poses are then held by tight priors (as ORB-SLAM3's local BA fixes the keyframes around its
+  window): old views keep constraining the map without fill-in from marginalising landmarks;
+* whatever each registered :class:`FactorProvider` adds (depth priors and residuals of Eq. 13-14).
+
+Marginalisation eliminates ``X, V, B`` of the oldest keyframe from its prior, a visual fix of its pose (its
+own
+observations with the landmarks held, ``marginal_visual_fix``, see
+:meth:`SlidingWindowBackend._visual_prior`), its
+IMU link and zero-motion factors, giving a Gaussian prior on the next keyframe's state; its reprojection
+factors
+stay in the window through the anchored pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from runtime.backend.factors import huber_noise, make_projection_factors, pose_prior_noise_world
+from runtime.backend.imu import make_bias
+from runtime.geometry import from_pose3, inv_T, to_pose3
+
+log = logging.getLogger(__name__)
+
+
+def _sym():
+    from gtsam.symbol_shorthand import B, C, L, V, X
+
+    return X, V, B, L, C
+
+
+@dataclass
+class BackendConfig:
+    """Sliding-window backend settings."""
+
+    window_size: int = 10  # active keyframes (full X, V, B states)
+    anchor_old_observations: bool = True  # keep observations of keyframes that left, poses held fixed
+    max_anchor_keyframes: int = 15
+    anchor_sigma: float = 1e-4  # rad and m: how firmly anchored poses are held
+    pixel_sigma: float = 1.0  # px, reprojection noise
+    huber_k: float = 1.5  # Huber threshold in sigmas
+    lm_max_iterations: int = 8
+    lm_relative_tol: float = 1e-3
+    marginal_visual_fix: bool = True  # marginalise with a visual fix of the leaving keyframe's pose
+    visual_fix_sigma: float = 0.01  # m, how firmly its landmarks are held for that fix
+    # initial priors (first keyframe): yaw and position are the gauge, roll/pitch from gravity
+    prior_yaw_sigma: float = 1e-3  # rad
+    prior_roll_pitch_sigma: float = 0.02  # rad
+    prior_pos_sigma: float = 1e-3  # m
+    prior_vel_sigma: float = 0.02  # m/s
+    prior_acc_bias_sigma: float = 0.1  # m/s^2
+    prior_gyro_bias_sigma: float = 2e-3  # rad/s
+    still_rot_sigma: float = 2e-3  # rad, zero-motion between keyframes at rest
+    still_pos_sigma: float = 2e-3  # m
+    still_vel_sigma: float = 0.01  # m/s
+    outlier_px: float = 3.0  # observations above this after optimisation are removed
+    min_depth: float = 0.1  # m, observations closer (or behind) are removed
+    max_speed: float = 15.0  # m/s, above this the estimate is declared diverged
+    gap_vel_sigma: float = 0.3  # m/s, velocity prior of a keyframe after an IMU gap
+    gap_rot_sigma: float = 0.1  # rad, pose prior of a keyframe after an IMU gap (around the propagated pose)
+    gap_pos_sigma: float = 0.3  # m
+
+
+@dataclass
+class Keyframe:
+    """State of one keyframe (body frame, world frame z up)."""
+
+    kf_id: int
+    ts: int  # ns
+    frame_idx: int
+    T_w_b: np.ndarray  # (4, 4)
+    v_w: np.ndarray  # (3,) m/s
+    bias: np.ndarray  # (6,) [ba (m/s^2), bg (rad/s)], GTSAM order
+    still: bool = False  # at rest since the previous keyframe
+
+
+@dataclass
+class Landmark:
+    """A map point seen by keyframes of the window (observations in undistorted pixels)."""
+
+    lm_id: int
+    X_w: np.ndarray  # (3,) m
+    obs: dict = field(default_factory=dict)  # kf_id -> (2,) uv
+    factors: dict = field(default_factory=dict)  # kf_id -> GenericProjectionFactorCal3_S2 (cached)
+    map_prior: object = None  # PriorFactorPoint3 of a re-activated map point (relocalisation), else None
+
+
+class FactorProvider(Protocol):
+    """Plug-in point for extra variables and factors (the dense issue's depth codes ``C(k)`` and Eq. 13-14).
+
+    The backend calls, in order, at each optimisation: ``add_factors`` (insert new variables into ``values``
+    and factors into ``graph``; the window's states and landmarks are already there, see
+    :meth:`SlidingWindowBackend.window_view`), then ``on_optimized`` with the LM result. Before a keyframe's
+    ``X, V, B`` are marginalised, ``on_marginalize`` is called (drop or summarise variables tied to it).
+    """
+
+    def add_factors(self, backend: SlidingWindowBackend, graph, values) -> None: ...
+
+    def on_optimized(self, backend: SlidingWindowBackend, result) -> None: ...
+
+    def on_marginalize(self, backend: SlidingWindowBackend, kf_id: int) -> None: ...
+
+
+class SlidingWindowBackend:
+    """Keyframe window over GTSAM (LM); see the module docstring for the factors.
+
+    Args:
+        K: (fx, fy, cx, cy) of the undistorted (pinhole) camera the observations are expressed in.
+        T_b_c: (4, 4) camera-to-body.
+        preint_params: ``gtsam.PreintegrationCombinedParams``.
+        cfg: settings.
+    """
+
+    def __init__(self, K, T_b_c: np.ndarray, preint_params, cfg: BackendConfig | None = None) -> None:
+        import gtsam
+
+        self.cfg = cfg or BackendConfig()
+        self.K_tuple = tuple(float(k) for k in K)
+        fx, fy, cx, cy = self.K_tuple
+        self.K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        self.cal = gtsam.Cal3_S2(fx, fy, 0.0, cx, cy)
+        self.T_b_c = np.asarray(T_b_c, dtype=np.float64)
+        self.T_c_b = inv_T(self.T_b_c)
+        self.body_P_sensor = to_pose3(self.T_b_c)
+        self.preint_params = preint_params
+        self.proj_noise = huber_noise([self.cfg.pixel_sigma] * 2, self.cfg.huber_k, scalar=False)
+        self.providers: list[FactorProvider] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget everything, including the archived keyframe poses and map points."""
+        self.history: dict[int, tuple[int, np.ndarray]] = {}  # kf_id -> (ts, final T_w_b) of every keyframe
+        self.map_points: dict[int, np.ndarray] = {}  # landmarks that left the window (final positions)
+        self.n_optimizations = 0
+        self.landmarks = {}
+        self._clear_window()
+
+    def _clear_window(self) -> None:
+        """Forget the window (states, landmarks, factors); archived poses and map points stay."""
+        for j, lm in getattr(self, "landmarks", {}).items():
+            if len(lm.obs) >= 2:
+                self.map_points[j] = lm.X_w.copy()
+        self.keyframes: dict[int, Keyframe] = {}  # active and anchor keyframes
+        self.active: list[int] = []
+        self.anchors: list[int] = []
+        self.landmarks: dict[int, Landmark] = {}
+        self.kf_obs: dict[int, set] = {}  # kf_id -> landmark ids it observes
+        self.imu_factors: dict[int, list] = {}  # inertial link (or gap priors), keyed by the later keyframe
+        self.still_between: dict[int, object] = {}  # keyed by the later keyframe
+        self.vel_priors: dict[int, object] = {}  # keyed by the keyframe
+        self.prior_factors: list = []  # on the oldest active keyframe
+        self.last_stats: dict = {}
+
+    @property
+    def initialized(self) -> bool:
+        return bool(self.active)
+
+    @property
+    def latest(self) -> Keyframe:
+        return self.keyframes[self.active[-1]]
+
+    def add_provider(self, provider: FactorProvider) -> None:
+        """Register a :class:`FactorProvider` (e.g. the depth-code factors of the dense system)."""
+        self.providers.append(provider)
+
+    # ------------------------------------------------------------------ building
+    def initialize(self, kf: Keyframe) -> None:
+        """Start a new window with ``kf`` and priors on its state (gauge: position and yaw).
+
+        Archived keyframe poses and map points of earlier windows are kept.
+        """
+        import gtsam
+
+        X, V, B, _, _ = _sym()
+        self._clear_window()
+        c = self.cfg
+        self._insert_kf(kf)
+        pose_noise = pose_prior_noise_world(
+            kf.T_w_b[:3, :3],
+            np.array([c.prior_roll_pitch_sigma, c.prior_roll_pitch_sigma, c.prior_yaw_sigma]),
+            c.prior_pos_sigma,
+        )
+        self.prior_factors = [
+            gtsam.PriorFactorPose3(X(kf.kf_id), to_pose3(kf.T_w_b), pose_noise),
+            gtsam.PriorFactorVector(
+                V(kf.kf_id), kf.v_w, gtsam.noiseModel.Isotropic.Sigma(3, c.prior_vel_sigma)
+            ),
+            gtsam.PriorFactorConstantBias(
+                B(kf.kf_id),
+                make_bias(kf.bias),
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.array([c.prior_acc_bias_sigma] * 3 + [c.prior_gyro_bias_sigma] * 3)
+                ),
+            ),
+        ]
+
+    def _insert_kf(self, kf: Keyframe) -> None:
+        self.keyframes[kf.kf_id] = kf
+        self.active.append(kf.kf_id)
+        self.kf_obs[kf.kf_id] = set()
+        self.history[kf.kf_id] = (kf.ts, kf.T_w_b.copy())
+
+    def add_keyframe(self, kf: Keyframe, pim) -> None:
+        """Append a keyframe linked to the newest one by the preintegrated IMU ``pim`` (zero motion if still).
+
+        ``pim=None`` (the IMU had a gap): no inertial link; the bias continues through a between factor and
+        the
+        pose and velocity get loose priors around ``kf``'s values (the landmarks then fix the pose).
+        """
+        import gtsam
+
+        X, V, B, _, _ = _sym()
+        if not self.active:
+            raise RuntimeError("add_keyframe before initialize")
+        prev = self.active[-1]
+        if kf.kf_id in self.keyframes or kf.kf_id <= prev:
+            raise ValueError(f"keyframe id {kf.kf_id} is not new (latest is {prev})")
+        self._insert_kf(kf)
+        i, j = prev, kf.kf_id
+        c = self.cfg
+        if pim is None:
+            self.imu_factors[j] = [
+                gtsam.BetweenFactorConstantBias(
+                    B(i),
+                    B(j),
+                    gtsam.imuBias.ConstantBias(),
+                    gtsam.noiseModel.Diagonal.Sigmas(
+                        np.array([c.prior_acc_bias_sigma] * 3 + [c.prior_gyro_bias_sigma] * 3)
+                    ),
+                ),
+                gtsam.PriorFactorVector(V(j), kf.v_w, gtsam.noiseModel.Isotropic.Sigma(3, c.gap_vel_sigma)),
+                gtsam.PriorFactorPose3(
+                    X(j),
+                    to_pose3(kf.T_w_b),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([c.gap_rot_sigma] * 3 + [c.gap_pos_sigma] * 3)),
+                ),
+            ]
+        else:
+            self.imu_factors[j] = [gtsam.CombinedImuFactor(X(i), V(i), X(j), V(j), B(i), B(j), pim)]
+        if kf.still:
+            c = self.cfg
+            self.still_between[j] = gtsam.BetweenFactorPose3(
+                X(i),
+                X(j),
+                gtsam.Pose3.Identity(),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([c.still_rot_sigma] * 3 + [c.still_pos_sigma] * 3)),
+            )
+            self.vel_priors[j] = gtsam.PriorFactorVector(
+                V(j), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, c.still_vel_sigma)
+            )
+
+    def add_observations(self, kf_id: int, lm_ids: np.ndarray, uv: np.ndarray) -> None:
+        """Observations (undistorted pixels (N, 2)) of existing landmarks by keyframe ``kf_id``."""
+        if kf_id not in self.keyframes:
+            raise KeyError(f"keyframe {kf_id} is not in the window")
+        X, _, _, L, _ = _sym()
+        ids = [int(j) for j in lm_ids if int(j) in self.landmarks]
+        if not ids:
+            return
+        sel = np.isin(lm_ids, ids)
+        uvs = np.asarray(uv, dtype=np.float64)[sel]
+        lids = np.asarray(lm_ids)[sel]
+        facs = make_projection_factors(
+            np.array([L(int(j)) for j in lids]),
+            np.full(lids.size, X(kf_id)),
+            uvs,
+            self.cal,
+            self.body_P_sensor,
+            self.proj_noise,
+        )
+        obs = self.kf_obs[kf_id]
+        for j, u, f in zip(lids, uvs, facs, strict=False):
+            lm = self.landmarks[int(j)]
+            lm.obs[kf_id] = u
+            lm.factors[kf_id] = f
+            obs.add(int(j))
+
+    def add_landmarks(self, lm_ids: np.ndarray, X_w: np.ndarray, obs: list[dict]) -> None:
+        """New landmarks at positions (N, 3) with their observations ``{kf_id: uv (2,)}``."""
+        for j, P, o in zip(lm_ids, np.asarray(X_w, dtype=np.float64), obs, strict=False):
+            j = int(j)
+            if j in self.landmarks:
+                raise ValueError(f"landmark {j} exists already")
+            self.landmarks[j] = Landmark(j, P.copy())
+            for kf_id, u in o.items():
+                if kf_id in self.keyframes:
+                    self.add_observations(kf_id, np.array([j]), np.asarray(u, dtype=np.float64).reshape(1, 2))
+
+    # ------------------------------------------------------------------ views for plug-ins and the frontend
+    def window_view(self) -> dict:
+        """Arrays describing the window: active/anchor keyframe ids, landmark ids and positions, observations.
+
+        Returns:
+            ``{"active": [...], "anchors": [...], "lm_ids": (N,), "X_w": (N, 3), "obs_kf": (M,), "obs_lm":
+            (M,),
+            "obs_uv": (M, 2)}``.
+        """
+        lm_ids = np.array(list(self.landmarks.keys()), dtype=np.int64)
+        X_w = np.array([self.landmarks[int(j)].X_w for j in lm_ids]).reshape(-1, 3)
+        ok, ol, ou = [], [], []
+        for j in lm_ids:
+            for k, u in self.landmarks[int(j)].obs.items():
+                ok.append(k)
+                ol.append(int(j))
+                ou.append(u)
+        return {
+            "active": list(self.active),
+            "anchors": list(self.anchors),
+            "lm_ids": lm_ids,
+            "X_w": X_w,
+            "obs_kf": np.array(ok, dtype=np.int64),
+            "obs_lm": np.array(ol, dtype=np.int64),
+            "obs_uv": np.array(ou, dtype=np.float64).reshape(-1, 2),
+        }
+
+    def covisible_keyframes(self, kf_id: int, n: int) -> list[int]:
+        """The ``n`` active keyframes sharing most landmarks with ``kf_id`` (itself excluded), best first."""
+        mine = self.kf_obs.get(kf_id, set())
+        scores = [(len(mine & self.kf_obs[k]), k) for k in self.active if k != kf_id]
+        scores.sort(key=lambda s: (-s[0], -s[1]))
+        return [k for s, k in scores[:n] if s > 0]
+
+    def landmark_positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (N, 3) of landmarks by id and a mask of those that exist in the window."""
+        out = np.zeros((len(ids), 3))
+        ok = np.zeros(len(ids), bool)
+        for n, j in enumerate(ids):
+            lm = self.landmarks.get(int(j))
+            if lm is not None:
+                out[n] = lm.X_w
+                ok[n] = True
+        return out, ok
+
+    # ------------------------------------------------------------------ optimisation
+    def _build(self):
+        import gtsam
+
+        X, V, B, L, _ = _sym()
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k in self.active:
+            kf = self.keyframes[k]
+            values.insert(X(k), to_pose3(kf.T_w_b))
+            values.insert(V(k), np.asarray(kf.v_w, dtype=np.float64))
+            values.insert(B(k), make_bias(kf.bias))
+        for f in self.prior_factors:
+            graph.push_back(f)
+        links = {}  # inter-keyframe factors (IMU, zero motion), kept apart for the window marginal
+        for k in self.active[1:]:
+            lg = gtsam.NonlinearFactorGraph()
+            for f in self.imu_factors[k]:
+                lg.push_back(f)
+            if k in self.still_between:
+                lg.push_back(self.still_between[k])
+            links[k] = lg
+        for k in self.active:
+            if k in self.vel_priors:
+                graph.push_back(self.vel_priors[k])
+        anchor_noise = gtsam.noiseModel.Isotropic.Sigma(6, self.cfg.anchor_sigma)
+        used_anchors = set()
+        active = set(self.active)
+        proj_kf, proj_lm = [], []
+        for j, lm in self.landmarks.items():
+            if len(lm.obs) < (1 if lm.map_prior is not None else 2) or not any(k in active for k in lm.obs):
+                continue
+            values.insert(L(j), lm.X_w)
+            if lm.map_prior is not None:
+                graph.push_back(lm.map_prior)
+            for k, f in lm.factors.items():
+                graph.push_back(f)
+                proj_kf.append(k)
+                proj_lm.append(j)
+                if k not in active:
+                    used_anchors.add(k)
+        for k in used_anchors:
+            kf = self.keyframes[k]
+            values.insert(X(k), to_pose3(kf.T_w_b))
+            graph.push_back(gtsam.PriorFactorPose3(X(k), to_pose3(kf.T_w_b), anchor_noise))
+        return graph, links, values, np.array(proj_kf, dtype=np.int64), np.array(proj_lm, dtype=np.int64)
+
+    def optimize(self) -> dict:
+        """Run LM on the window; write the result back into keyframes and landmarks.
+
+        Returns:
+            stats: ``{"iterations", "error_before", "error_after", "n_factors", "n_landmarks", "t_build",
+            "t_solve", "ok"}``.
+        """
+        import gtsam
+
+        X, V, B, L, _ = _sym()
+        t0 = time.perf_counter()
+        base, links, values, proj_kf, proj_lm = self._build()
+        for p in self.providers:
+            p.add_factors(self, base, values)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(base)
+        for lg in links.values():
+            graph.push_back(lg)
+        t1 = time.perf_counter()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.cfg.lm_max_iterations)
+        params.setRelativeErrorTol(self.cfg.lm_relative_tol)
+        params.setAbsoluteErrorTol(1e-6)
+        stats = {"n_factors": int(graph.size()), "n_landmarks": int(len(set(proj_lm.tolist())))}
+        try:
+            err0 = graph.error(values)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+            result = opt.optimize()
+            err1 = graph.error(result)
+            stats.update(
+                iterations=int(opt.iterations()), error_before=float(err0), error_after=float(err1), ok=True
+            )
+        except RuntimeError as e:  # IndeterminantLinearSystem and the like: keep the previous estimate
+            log.warning(
+                "backend: LM failed (%s); keeping the previous estimate", str(e).splitlines()[0][:200]
+            )
+            stats.update(iterations=0, error_before=float("nan"), error_after=float("nan"), ok=False)
+            self.last_stats = stats
+            return stats
+        t2 = time.perf_counter()
+        for k in self.active:
+            kf = self.keyframes[k]
+            kf.T_w_b = from_pose3(result.atPose3(X(k)))
+            kf.v_w = np.asarray(result.atVector(V(k)), dtype=np.float64).copy()
+            b = result.atConstantBias(B(k))
+            kf.bias = np.concatenate([b.accelerometer(), b.gyroscope()])
+            self.history[k] = (kf.ts, kf.T_w_b.copy())
+        for j in set(proj_lm.tolist()):
+            self.landmarks[j].X_w = np.asarray(result.atPoint3(L(j)), dtype=np.float64).copy()
+        for p in self.providers:
+            p.on_optimized(self, result)
+        self._last_result = result
+        self.n_optimizations += 1
+        stats.update(t_build=t1 - t0, t_solve=t2 - t1)
+        self.last_stats = stats
+        return stats
+
+    def diverged(self) -> str | None:
+        """A reason string when the window's estimate is not plausible, else None."""
+        for k in self.active:
+            kf = self.keyframes[k]
+            if not (np.isfinite(kf.T_w_b).all() and np.isfinite(kf.v_w).all() and np.isfinite(kf.bias).all()):
+                return f"non-finite state at keyframe {k}"
+            if np.linalg.norm(kf.v_w) > self.cfg.max_speed:
+                return f"speed {np.linalg.norm(kf.v_w):.1f} m/s at keyframe {k}"
+            if np.linalg.norm(kf.bias[:3]) > 2.0 or np.linalg.norm(kf.bias[3:]) > 0.5:
+                return f"implausible IMU bias {np.round(kf.bias, 3).tolist()} at keyframe {k}"
+        return None
+
+    # ------------------------------------------------------------------ outliers
+    def reprojection_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """All observations of the window: (kf ids (M,), landmark ids (M,), errors (M,) px, depths (M,) m)."""
+        kfs, lms, uvs, Xs = [], [], [], []
+        for j, lm in self.landmarks.items():
+            for k, u in lm.obs.items():
+                kfs.append(k)
+                lms.append(j)
+                uvs.append(u)
+                Xs.append(lm.X_w)
+        if not kfs:
+            z = np.zeros(0)
+            return z.astype(np.int64), z.astype(np.int64), z, z
+        kfs_a = np.array(kfs, dtype=np.int64)
+        uv = np.array(uvs)
+        Xw = np.array(Xs)
+        uniq, inv = np.unique(kfs_a, return_inverse=True)
+        T_c_w = np.stack([self.T_c_b @ inv_T(self.keyframes[int(k)].T_w_b) for k in uniq])[inv]  # (M, 4, 4)
+        p_c = np.einsum("mij,mj->mi", T_c_w[:, :3, :3], Xw) + T_c_w[:, :3, 3]
+        z = p_c[:, 2]
+        zs = np.where(np.abs(z) > 1e-9, z, 1e-9)
+        uv_hat = np.stack(
+            [self.K[0, 0] * p_c[:, 0] / zs + self.K[0, 2], self.K[1, 1] * p_c[:, 1] / zs + self.K[1, 2]], -1
+        )
+        err = np.linalg.norm(uv_hat - uv, axis=1)
+        return kfs_a, np.array(lms, dtype=np.int64), err, z
+
+    def remove_outliers(self) -> tuple[np.ndarray, int]:
+        """Drop observations with large reprojection error or bad depth; landmarks left with < 2 views go.
+
+        Returns:
+            ids of landmarks whose newest observation was rejected or that were removed (the frontend should
+            stop tracking them), and the number of observations removed.
+        """
+        kfs, lms, err, z = self.reprojection_errors()
+        bad = (err > self.cfg.outlier_px) | (z < self.cfg.min_depth) | ~np.isfinite(err)
+        if not bad.any():
+            return np.zeros(0, np.int64), 0
+        newest = self.active[-1]
+        drop_tracks = set()
+        for k, j in zip(kfs[bad], lms[bad], strict=False):
+            k, j = int(k), int(j)
+            lm = self.landmarks.get(j)
+            if lm is None:
+                continue
+            lm.obs.pop(k, None)
+            lm.factors.pop(k, None)
+            self.kf_obs[k].discard(j)
+            if k == newest:
+                drop_tracks.add(j)
+        for j in set(lms[bad].tolist()):
+            lm = self.landmarks.get(j)
+            if lm is not None and len(lm.obs) < (1 if lm.map_prior is not None else 2):
+                self._delete_landmark(j)
+                drop_tracks.add(j)
+        return np.array(sorted(drop_tracks), dtype=np.int64), int(bad.sum())
+
+    def _delete_landmark(self, j: int) -> None:
+        lm = self.landmarks.pop(j)
+        for k in lm.obs:
+            self.kf_obs.get(k, set()).discard(j)
+
+    # ------------------------------------------------------------------ marginalisation
+    def marginalize(self) -> list[int]:
+        """Marginalise the oldest active keyframes until the window has ``window_size``; returns their ids."""
+        import gtsam
+
+        X, V, B, _, _ = _sym()
+        dropped = []
+        while len(self.active) > self.cfg.window_size:
+            o, n = self.active[0], self.active[1]
+            for p in self.providers:
+                p.on_marginalize(self, o)
+            fg = gtsam.NonlinearFactorGraph()
+            window_prior = self._visual_prior(o) if self.cfg.marginal_visual_fix else None
+            for f in window_prior if window_prior is not None else self.prior_factors:
+                fg.push_back(f)
+            for f in self.imu_factors.pop(n):
+                fg.push_back(f)
+            if n in self.still_between:
+                fg.push_back(self.still_between.pop(n))
+            if o in self.vel_priors:
+                fg.push_back(self.vel_priors.pop(o))
+            vals = gtsam.Values()
+            for k in (o, n):
+                kf = self.keyframes[k]
+                vals.insert(X(k), to_pose3(kf.T_w_b))
+                vals.insert(V(k), np.asarray(kf.v_w, dtype=np.float64))
+                vals.insert(B(k), make_bias(kf.bias))
+            lin = fg.linearize(vals)
+            ordering = gtsam.Ordering()
+            for key in (X(o), V(o), B(o)):
+                ordering.push_back(key)
+            _, remaining = lin.eliminatePartialSequential(ordering)
+            lin_pt = gtsam.Values()
+            kfn = self.keyframes[n]
+            lin_pt.insert(X(n), to_pose3(kfn.T_w_b))
+            lin_pt.insert(V(n), np.asarray(kfn.v_w, dtype=np.float64))
+            lin_pt.insert(B(n), make_bias(kfn.bias))
+            self.prior_factors = [
+                gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
+                for i in range(remaining.size())
+                if remaining.at(i) is not None
+            ]
+            self.active.pop(0)
+            dropped.append(o)
+            if self.cfg.anchor_old_observations:
+                self.anchors.append(o)
+            else:
+                self._forget_keyframe(o)
+        while len(self.anchors) > self.cfg.max_anchor_keyframes:
+            self._forget_keyframe(self.anchors.pop(0))
+        if dropped:
+            self._freeze_landmarks()
+        return dropped
+
+    def _visual_prior(self, o: int):
+        """The prior on ``X, V, B`` of keyframe ``o`` plus a visual fix of its pose, as linear factors.
+
+        The fix is what ``o``'s own observations say about its pose with its landmarks held near their current
+        estimates (``visual_fix_sigma``): the map's word on where ``o`` is. Marginalising ``o`` with it and
+        the
+        link ``o -> n`` hands that information on: the window keeps a visually informed position and velocity
+        when every landmark has gone (a textureless stretch). It is cheap (``o``'s factors only, no Schur
+        complement over the window) and counts only ``o``'s own visual information twice (its observations
+        stay in the window through its anchor); the inertial chain and the biases are never duplicated.
+        Returns None (use the plain prior) when ``o`` sees fewer than 6 landmarks.
+        """
+        import gtsam
+
+        X, V, B, L, _ = _sym()
+        obs = [j for j in self.kf_obs.get(o, ()) if j in self.landmarks and o in self.landmarks[j].factors]
+        if len(obs) < 6:
+            return None
+        kf = self.keyframes[o]
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        values.insert(X(o), to_pose3(kf.T_w_b))
+        values.insert(V(o), np.asarray(kf.v_w, dtype=np.float64))
+        values.insert(B(o), make_bias(kf.bias))
+        for f in self.prior_factors:
+            graph.push_back(f)
+        fix = gtsam.noiseModel.Isotropic.Sigma(3, self.cfg.visual_fix_sigma)
+        lm_order = gtsam.Ordering()
+        for j in obs:
+            lm = self.landmarks[j]
+            values.insert(L(j), lm.X_w)
+            graph.push_back(lm.factors[o])
+            graph.push_back(gtsam.PriorFactorPoint3(L(j), lm.X_w, fix))
+            lm_order.push_back(L(j))
+        try:
+            _, remaining = graph.linearize(values).eliminatePartialSequential(lm_order)
+        except RuntimeError as e:
+            log.info("backend: visual fix of keyframe %d unavailable (%s)", o, str(e).splitlines()[0][:120])
+            return None
+        lin_pt = gtsam.Values()
+        lin_pt.insert(X(o), to_pose3(kf.T_w_b))
+        lin_pt.insert(V(o), np.asarray(kf.v_w, dtype=np.float64))
+        lin_pt.insert(B(o), make_bias(kf.bias))
+        return [
+            gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
+            for i in range(remaining.size())
+            if remaining.at(i) is not None
+        ]
+
+    # ------------------------------------------------------------------ relocalisation
+    def reactivate_landmarks(
+        self, ids: np.ndarray, X_map: np.ndarray, kf_id: int, uv: np.ndarray, sigma: float
+    ) -> None:
+        """Bring map points back into the window, observed by keyframe ``kf_id`` (undistorted pixels (N, 2)),
+        each held near its map position by a prior of ``sigma`` metres (the map is older and better known)."""
+        import gtsam
+
+        _, _, _, L, _ = _sym()
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, float(sigma))
+        for j, P in zip(ids, np.asarray(X_map, dtype=np.float64), strict=False):
+            j = int(j)
+            if j in self.landmarks:
+                continue
+            self.map_points.pop(j, None)
+            self.landmarks[j] = Landmark(j, P.copy(), map_prior=gtsam.PriorFactorPoint3(L(j), P, noise))
+        self.add_observations(kf_id, np.asarray(ids), np.asarray(uv, dtype=np.float64))
+
+    def apply_correction(self, correction, t_from: int) -> None:
+        """Move keyframes (and their landmarks) by world-frame corrections ``correction(ts) -> (4, 4)``.
+
+        Used when relocalisation finds that the window drifted from the map: every keyframe at or after
+        ``t_from`` (ns) in memory and in ``history`` gets ``T_w_b <- C(ts) T_w_b`` (velocities rotate with
+        it),
+        landmarks follow the correction of their newest observing keyframe (re-activated map points stay). The
+        marginal prior on the oldest keyframe (linearised at the old state) is replaced by priors around the
+        corrected state: roll/pitch and biases keep their confidence, position, yaw and velocity become loose.
+        """
+        import gtsam
+
+        X, V, B, _, _ = _sym()
+        corr = {}
+        for k, (ts, T) in list(self.history.items()):
+            if ts >= t_from:
+                C = correction(ts)
+                corr[k] = C
+                self.history[k] = (ts, C @ T)
+        for kf in self.keyframes.values():
+            C = corr.get(kf.kf_id)
+            if C is not None:
+                kf.T_w_b = C @ kf.T_w_b
+                kf.v_w = C[:3, :3] @ kf.v_w
+        for lm in self.landmarks.values():
+            if lm.map_prior is None and lm.obs:
+                C = corr.get(max(lm.obs))
+                if C is not None:
+                    lm.X_w = lm.X_w @ C[:3, :3].T + C[:3, 3]
+        c = self.cfg
+        o = self.keyframes[self.active[0]]
+        self.prior_factors = [
+            gtsam.PriorFactorPose3(
+                X(o.kf_id),
+                to_pose3(o.T_w_b),
+                pose_prior_noise_world(
+                    o.T_w_b[:3, :3], np.array([c.prior_roll_pitch_sigma] * 2 + [0.1]), 0.5
+                ),
+            ),
+            gtsam.PriorFactorVector(V(o.kf_id), o.v_w, gtsam.noiseModel.Isotropic.Sigma(3, 0.2)),
+            gtsam.PriorFactorConstantBias(
+                B(o.kf_id),
+                make_bias(o.bias),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([0.02] * 3 + [c.prior_gyro_bias_sigma] * 3)),
+            ),
+        ]
+
+    def _forget_keyframe(self, k: int) -> None:
+        """Remove a keyframe's observations and state (its final pose stays in ``history``)."""
+        for j in self.kf_obs.pop(k, set()):
+            lm = self.landmarks.get(j)
+            if lm is not None:
+                lm.obs.pop(k, None)
+                lm.factors.pop(k, None)
+        self.keyframes.pop(k, None)
+
+    def _freeze_landmarks(self) -> None:
+        """Landmarks no longer seen by any active keyframe move to the map (their estimate is final)."""
+        active = set(self.active)
+        gone = [j for j, lm in self.landmarks.items() if not any(k in active for k in lm.obs)]
+        for j in gone:
+            lm = self.landmarks[j]
+            if len(lm.obs) >= 2:
+                self.map_points[j] = lm.X_w.copy()
+            self._delete_landmark(j)
+
+    def all_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every landmark estimate (map and window): ids (N,), positions (N, 3)."""
+        pts = dict(self.map_points)
+        for j, lm in self.landmarks.items():
+            if len(lm.obs) >= 2:
+                pts[j] = lm.X_w
+        ids = np.array(sorted(pts), dtype=np.int64)
+        return ids, np.array([pts[int(j)] for j in ids]).reshape(-1, 3)

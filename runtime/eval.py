@@ -1,0 +1,188 @@
+"""Trajectory evaluation with ``evo`` (ATE after SE(3) / Sim(3) alignment, RPE) and the top-view plot.
+
+The ground truth is interpolated at the estimate's timestamps (linear position, slerp rotation), so estimates
+and
+reference pair exactly; ``evo`` then aligns (Umeyama) and computes the statistics. Both trajectories are body
+poses ``T_w_b`` (EuRoC's ground truth is the body/IMU frame).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+NS = 1e-9
+
+
+def interpolate_poses(ts_query: np.ndarray, ts: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N, 4, 4) at ``ts_query`` (ns) from a trajectory (``ts`` ns, ``T`` (K, 4, 4)), and a mask of
+    queries inside ``[ts[0], ts[-1]]``. Position linear, rotation slerp."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    ts_query = np.asarray(ts_query, dtype=np.int64)
+    ts = np.asarray(ts, dtype=np.int64)
+    inside = (ts_query >= ts[0]) & (ts_query <= ts[-1])
+    q = ts_query[inside]
+    out = np.tile(np.eye(4), (q.size, 1, 1))
+    if q.size:
+        t_rel = (ts - ts[0]) * NS
+        tq = (q - ts[0]) * NS
+        slerp = Slerp(t_rel, Rotation.from_matrix(T[:, :3, :3]))
+        out[:, :3, :3] = slerp(tq).as_matrix()
+        for d in range(3):
+            out[:, d, 3] = np.interp(tq, t_rel, T[:, d, 3])
+    return out, inside
+
+
+def _traj(ts_ns: np.ndarray, T: np.ndarray):
+    from evo.core.trajectory import PoseTrajectory3D
+
+    return PoseTrajectory3D(
+        poses_se3=list(np.asarray(T, dtype=np.float64)), timestamps=np.asarray(ts_ns) * NS
+    )
+
+
+def trajectory_metrics(
+    est_ts: np.ndarray,
+    est_T: np.ndarray,
+    gt_ts: np.ndarray,
+    gt_T: np.ndarray,
+    rpe_delta_s: float = 1.0,
+    return_aligned: bool = False,
+) -> dict:
+    """ATE (SE(3) and Sim(3) alignment) and RPE of an estimate against ground truth, computed by ``evo``.
+
+    Args:
+        est_ts: (N,) ns; est_T: (N, 4, 4) estimated ``T_w_b``.
+        gt_ts: (K,) ns; gt_T: (K, 4, 4) ground-truth ``T_w_b``.
+        rpe_delta_s: RPE pair spacing [s] (converted to frames at the estimate's median rate).
+        return_aligned: add ``"aligned_se3"``: (N', 3) SE(3)-aligned estimate positions (N' evaluated frames).
+
+    Returns:
+        ``{"ate_se3_rmse_m", "ate_se3_mean_m", "ate_se3_max_m", "ate_sim3_rmse_m", "sim3_scale",
+        "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "rpe_delta_frames", "eval_frames", "path_length_m"}``.
+    """
+    from evo.core import metrics
+
+    est_ts = np.asarray(est_ts, dtype=np.int64)
+    est_T = np.asarray(est_T, dtype=np.float64)
+    if est_T.shape != (est_ts.size, 4, 4):
+        raise ValueError(f"estimate has {est_ts.size} timestamps but poses of shape {est_T.shape}")
+    ref_T, inside = interpolate_poses(est_ts, gt_ts, gt_T)
+    if inside.sum() < 3:
+        raise ValueError(f"only {int(inside.sum())} estimated poses lie within the ground truth's time range")
+    ts = est_ts[inside]
+    est = _traj(ts, est_T[inside])
+    ref = _traj(ts, ref_T)
+    out: dict = {"eval_frames": int(ts.size), "path_length_m": float(ref.path_length)}
+
+    est_se3 = copy.deepcopy(est)
+    est_se3.align(ref, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est_se3))
+    st = ape.get_all_statistics()
+    out.update(
+        ate_se3_rmse_m=st["rmse"],
+        ate_se3_mean_m=st["mean"],
+        ate_se3_median_m=st["median"],
+        ate_se3_max_m=st["max"],
+    )
+
+    est_sim3 = copy.deepcopy(est)
+    _, _, s = est_sim3.align(ref, correct_scale=True)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est_sim3))
+    out.update(ate_sim3_rmse_m=ape.get_statistic(metrics.StatisticsType.rmse), sim3_scale=float(s))
+
+    rate = 1.0 / np.median(np.diff(ts) * NS) if ts.size > 1 else 1.0
+    delta = max(1, int(round(rpe_delta_s * rate)))
+    out["rpe_delta_frames"] = delta
+    if ts.size > delta + 1:
+        rpe_t = metrics.RPE(metrics.PoseRelation.translation_part, delta, metrics.Unit.frames, all_pairs=True)
+        rpe_t.process_data((ref, est))
+        rpe_r = metrics.RPE(
+            metrics.PoseRelation.rotation_angle_deg, delta, metrics.Unit.frames, all_pairs=True
+        )
+        rpe_r.process_data((ref, est))
+        out.update(
+            rpe_trans_rmse_m=rpe_t.get_statistic(metrics.StatisticsType.rmse),
+            rpe_rot_rmse_deg=rpe_r.get_statistic(metrics.StatisticsType.rmse),
+        )
+    else:
+        out.update(rpe_trans_rmse_m=float("nan"), rpe_rot_rmse_deg=float("nan"))
+    out = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in out.items()}
+    if return_aligned:
+        out["aligned_se3"] = np.asarray(est_se3.positions_xyz)
+        out["reference"] = np.asarray(ref.positions_xyz)
+    return out
+
+
+def plot_top_view(
+    path: str | Path,
+    est_ts: np.ndarray,
+    est_T: np.ndarray,
+    gt_ts: np.ndarray | None,
+    gt_T: np.ndarray | None,
+    title: str = "",
+) -> Path:
+    """Top view (x-y) of the estimate (SE(3)-aligned to the ground truth when given) and the ground truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=110)
+    est_p = np.asarray(est_T)[:, :3, 3]
+    label = "estimate"
+    if gt_T is not None and len(gt_ts) > 1:
+        ax.plot(gt_T[:, 0, 3], gt_T[:, 1, 3], "k-", lw=1.2, label="ground truth")
+        try:
+            m = trajectory_metrics(est_ts, est_T, gt_ts, gt_T, return_aligned=True)
+            est_p = m["aligned_se3"]
+            label = f"estimate (SE3-aligned, ATE {100 * m['ate_se3_rmse_m']:.1f} cm)"
+        except ValueError as e:
+            log.warning("plot: no alignment (%s)", e)
+    ax.plot(est_p[:, 0], est_p[:, 1], "-", color="tab:red", lw=1.0, label=label)
+    ax.plot(est_p[:1, 0], est_p[:1, 1], "o", color="tab:red", ms=4)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def load_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM file, an EuRoC ``state_groundtruth_estimate0/data.csv`` or sequence folder -> (ts, T)."""
+    from runtime.io.euroc import read_groundtruth
+    from runtime.io.tum import read_tum
+
+    p = Path(path)
+    if p.is_dir():
+        for cand in (
+            p / "mav0" / "state_groundtruth_estimate0" / "data.csv",
+            p / "state_groundtruth_estimate0" / "data.csv",
+            p / "data.csv",
+        ):
+            if cand.is_file():
+                gt = read_groundtruth(cand)
+                return gt.ts, gt.T_w_b
+        raise FileNotFoundError(f"{p}: no state_groundtruth_estimate0/data.csv inside")
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such trajectory file")
+    if p.suffix == ".csv":
+        gt = read_groundtruth(p)
+        return gt.ts, gt.T_w_b
+    return read_tum(p)

@@ -1,0 +1,65 @@
+"""Trajectory metrics (evo) on known answers, and the top-view plot."""
+
+import numpy as np
+import pytest
+
+from runtime import eval as ev
+from runtime.geometry import make_T, so3_exp
+from runtime.io.tum import write_tum
+
+
+def _gt(n=400, rate=200.0):
+    t = np.arange(n) / rate
+    ts = (1_000_000_000 + np.round(t * 1e9)).astype(np.int64)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, 0, 3] = np.cos(t)
+    T[:, 1, 3] = np.sin(1.3 * t)
+    T[:, 2, 3] = 0.1 * t
+    T[:, :3, :3] = so3_exp(np.stack([0.1 * t, 0.05 * t, 0.4 * t], 1))
+    return ts, T
+
+
+def test_identical_and_rigidly_moved_estimates_have_zero_error():
+    ts, T = _gt()
+    m = ev.trajectory_metrics(ts[::10], T[::10], ts, T)  # estimate at 20 Hz, exact GT samples
+    assert m["ate_se3_rmse_m"] < 1e-9 and m["rpe_trans_rmse_m"] < 1e-9 and m["eval_frames"] == 40
+    G = make_T(so3_exp(np.array([0.0, 0.0, 1.2])), [3.0, -1.0, 0.5])
+    m = ev.trajectory_metrics(ts, G @ T, ts, T)
+    assert m["ate_se3_rmse_m"] < 1e-9 and m["ate_sim3_rmse_m"] < 1e-9
+    assert m["rpe_trans_rmse_m"] < 1e-9 and m["rpe_rot_rmse_deg"] < 1e-6
+
+
+def test_scale_error_is_removed_by_sim3_only():
+    ts, T = _gt()
+    S = T.copy()
+    S[:, :3, 3] *= 1.1
+    m = ev.trajectory_metrics(ts, S, ts, T)
+    assert m["ate_se3_rmse_m"] > 0.01
+    assert m["ate_sim3_rmse_m"] < 1e-9 and m["sim3_scale"] == pytest.approx(1 / 1.1)
+
+
+def test_known_position_noise_gives_its_rmse():
+    ts, T = _gt(2000)
+    rng = np.random.default_rng(0)
+    E = T.copy()
+    E[:, :3, 3] += rng.normal(0, 0.01, (2000, 3))
+    m = ev.trajectory_metrics(ts, E, ts, T)
+    assert m["ate_se3_rmse_m"] == pytest.approx(0.01 * np.sqrt(3), rel=0.05)
+
+
+def test_interpolation_and_loading(tmp_path):
+    ts, T = _gt()
+    mid = (ts[:-1] + ts[1:]) // 2
+    P, inside = ev.interpolate_poses(mid, ts, T)
+    assert inside.all() and np.allclose(P[:, :3, 3], 0.5 * (T[:-1, :3, 3] + T[1:, :3, 3]), atol=1e-12)
+    _, inside = ev.interpolate_poses(np.array([ts[0] - 1, ts[-1] + 1]), ts, T)
+    assert not inside.any()
+    write_tum(tmp_path / "t.txt", ts, T)
+    ts2, T2 = ev.load_trajectory(tmp_path / "t.txt")
+    assert np.array_equal(ts, ts2) and np.allclose(T, T2, atol=1e-9)
+    with pytest.raises(FileNotFoundError):
+        ev.load_trajectory(tmp_path / "missing.txt")
+    with pytest.raises(ValueError, match="within the ground truth"):
+        ev.trajectory_metrics(ts + 10**12, T, ts, T)
+    p = ev.plot_top_view(tmp_path / "top.png", ts, T, ts, T, title="x")
+    assert p.stat().st_size > 1000

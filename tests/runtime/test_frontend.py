@@ -1,0 +1,151 @@
+"""Frontend: triangulation known answers, bucketed detection, KLT tracking, keyframe selection."""
+
+import cv2
+import numpy as np
+import pytest
+
+from runtime.frontend.features import FeatureConfig, FeatureDetector
+from runtime.frontend.keyframes import KeyframeConfig, KeyframeSelector, rotation_compensated_parallax
+from runtime.frontend.tracking import FeatureTracker, TrackerConfig
+from runtime.frontend.triangulation import TriangulationConfig, triangulate
+from runtime.geometry import inv_T, make_T, so3_exp
+from tests.runtime.synth import EUROC_CAM, EUROC_T_BS
+
+
+def _views(X, centres, seed=0):
+    """Cameras at ``centres`` looking at the mean of X (small random roll): T_w_c (V,4,4), xn (M,V,2)."""
+    rng = np.random.default_rng(seed)
+    target = X.mean(0)
+    Ts = []
+    for c in centres:
+        z = target - c
+        z /= np.linalg.norm(z)
+        x = np.cross([0, 0, 1.0], z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        R = np.stack([x, y, z], 1) @ so3_exp(np.array([0, 0, rng.normal(0, 0.05)]))
+        Ts.append(make_T(R, c))
+    Ts = np.array(Ts)
+    p_c = (
+        np.einsum("vij,mj->mvi", np.array([inv_T(T)[:3, :3] for T in Ts]), X)
+        + np.array([inv_T(T)[:3, 3] for T in Ts])[None]
+    )
+    return Ts, p_c[..., :2] / p_c[..., 2:3], p_c[..., 2]
+
+
+def test_triangulation_known_answer_multiview():
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], (50, 3))
+    centres = np.array([[0, 0, 0], [0.3, 0, 0], [0.6, 0.1, 0], [0.9, 0.0, 0.1]], float)
+    Ts, xn, _ = _views(X, centres)
+    M, V = 50, 4
+    mask = np.ones((M, V), bool)
+    mask[::3, 1] = False  # some points miss a view
+    P, ok, diag = triangulate(np.broadcast_to(Ts, (M, V, 4, 4)), xn, mask, focal=458.0)
+    assert ok.all()
+    assert np.abs(P - X).max() < 1e-8
+    assert np.all(diag["max_err_px"] < 1e-6)
+    # with 0.5 px noise the error stays a few millimetres per metre of depth
+    xn_noisy = xn + rng.normal(0, 0.5 / 458.0, xn.shape)
+    P, ok, _ = triangulate(np.broadcast_to(Ts, (M, V, 4, 4)), xn_noisy, mask, focal=458.0)
+    assert ok.mean() > 0.9
+    assert np.median(np.linalg.norm(P - X, axis=1)) < 0.03
+
+
+def test_triangulation_rejects_low_parallax_and_points_behind():
+    X = np.array([[0.0, 0.0, 5.0], [0.2, 0.1, 5.0]])
+    Ts, xn, _ = _views(X, np.array([[0, 0, 0], [0.05, 0, 0]], float))  # 0.6 deg of parallax
+    P, ok, diag = triangulate(np.broadcast_to(Ts, (2, 2, 4, 4)), xn, np.ones((2, 2), bool), focal=458.0)
+    assert not ok.any() and np.all(diag["parallax_deg"] < 1.0)
+    # mirrored observation: the ray geometry puts the point behind the cameras
+    Ts, xn, _ = _views(X, np.array([[0, 0, 0], [1.0, 0, 0]], float))
+    P, ok, _ = triangulate(np.broadcast_to(Ts, (2, 2, 4, 4)), xn, np.ones((2, 2), bool), focal=458.0)
+    assert ok.all()
+    T_flip = Ts.copy()
+    T_flip[:, :3, :3] = T_flip[:, :3, :3] @ np.diag([-1.0, -1.0, 1.0]) @ np.diag([1.0, 1.0, 1.0])
+    T_back = Ts.copy()
+    T_back[:, :3, :3] = Ts[:, :3, :3] @ np.diag([1.0, -1.0, -1.0])  # cameras turned around
+    P, ok, diag = triangulate(np.broadcast_to(T_back, (2, 2, 4, 4)), xn, np.ones((2, 2), bool), focal=458.0)
+    assert not ok.any()
+    cfg = TriangulationConfig(min_views=3)
+    P, ok, _ = triangulate(np.broadcast_to(Ts, (2, 2, 4, 4)), xn, np.ones((2, 2), bool), focal=458.0, cfg=cfg)
+    assert not ok.any()
+
+
+def _texture(h=480, w=752, seed=0):
+    rng = np.random.default_rng(seed)
+    img = np.full((h, w), 128, np.uint8)
+    for _ in range(900):
+        x, y = int(rng.integers(0, w - 20)), int(rng.integers(0, h - 20))
+        s = int(rng.integers(6, 20))
+        cv2.rectangle(img, (x, y), (x + s, y + s), int(rng.integers(0, 255)), -1)
+    return cv2.GaussianBlur(img, (3, 3), 0.8)
+
+
+@pytest.mark.parametrize("detector", ["gftt", "fast", "orb"])
+def test_detection_is_bucketed_and_avoids_tracked_points(detector):
+    img = _texture()
+    cfg = FeatureConfig(detector=detector, max_features=120, grid_cols=6, grid_rows=4, min_distance=20)
+    det = FeatureDetector(752, 480, cfg)
+    pts = det.detect(img)
+    assert 100 <= len(pts) <= 120
+    cells = (pts[:, 1] * 4 // 480).astype(int) * 6 + (pts[:, 0] * 6 // 752).astype(int)
+    counts = np.bincount(cells, minlength=24)
+    assert counts.max() <= det.per_cell and (counts > 0).sum() >= 20  # spread over the grid
+    existing = pts[:60]
+    new = det.detect(img, existing)
+    assert len(new) <= 60
+    d = np.linalg.norm(new[:, None] - existing[None], axis=-1)
+    assert d.min() >= cfg.min_distance - 1
+    with pytest.raises(ValueError, match="expects 752x480"):
+        det.detect(img[:100])
+
+
+def test_klt_recovers_known_shift_and_rejects_unrelated_image():
+    cam = EUROC_CAM.pinhole()  # no distortion: a pixel shift stays a shift
+    trk = FeatureTracker(cam, EUROC_T_BS, FeatureConfig(max_features=150), TrackerConfig())
+    img = _texture()
+    trk.track(0, img)
+    f0 = trk.replenish(0, img)
+    shift = np.array([3.4, -2.2])
+    img2 = cv2.warpAffine(
+        img, np.array([[1, 0, shift[0]], [0, 1, shift[1]]]), (752, 480), flags=cv2.INTER_LINEAR
+    )
+    f1 = trk.track(1, img2)
+    common, i0, i1 = np.intersect1d(f0.ids, f1.ids, return_indices=True)
+    assert len(common) > 0.8 * len(f0.ids)
+    err = np.abs(f1.uv[i1] - f0.uv[i0] - shift)
+    assert np.median(err) < 0.05
+    assert f1.flow_px == pytest.approx(np.linalg.norm(shift), abs=0.1)
+    f2 = trk.track(2, _texture(seed=5))  # nothing corresponds: forward-backward and RANSAC reject most
+    assert len(f2.ids) < 0.2 * len(f1.ids)
+
+
+def test_imu_rotation_prediction_is_the_infinite_homography():
+    trk = FeatureTracker(EUROC_CAM, EUROC_T_BS)
+    R_b0_b1 = so3_exp(np.array([0.01, -0.03, 0.02]))
+    rng = np.random.default_rng(1)
+    dirs_c0 = np.concatenate([rng.uniform(-0.4, 0.4, (20, 2)), np.ones((20, 1))], 1)
+    uv0, _ = EUROC_CAM.project(dirs_c0)
+    R_b_c = EUROC_T_BS[:3, :3]
+    dirs_c1 = dirs_c0 @ (R_b_c.T @ R_b0_b1.T @ R_b_c).T  # far points: only the rotation moves them
+    uv1, _ = EUROC_CAM.project(dirs_c1)
+    pred = trk.predict(uv0.astype(np.float32), R_b0_b1)
+    assert np.abs(pred - uv1).max() < 1e-3
+
+
+def test_parallax_is_zero_for_pure_rotation_and_selector_triggers():
+    rng = np.random.default_rng(2)
+    xn0 = rng.uniform(-0.5, 0.5, (30, 2))
+    R = so3_exp(np.array([0.0, 0.1, 0.02]))
+    f = np.concatenate([xn0, np.ones((30, 1))], 1) @ R.T
+    xn1 = f[:, :2] / f[:, 2:]
+    assert np.abs(rotation_compensated_parallax(xn0, xn1, R, 458.0)).max() < 1e-9
+    assert rotation_compensated_parallax(xn0, xn1, np.eye(3), 458.0).mean() > 10
+    sel = KeyframeSelector(KeyframeConfig(min_parallax_px=10, min_tracked_ratio=0.6, max_interval_s=0.5))
+    assert sel.decide(0.05, 100, 100, 50.0, 100) == (False, "")  # too soon
+    assert sel.decide(0.2, 100, 100, 12.0, 100) == (True, "parallax")
+    assert sel.decide(0.2, 100, 50, 1.0, 100) == (True, "tracked_ratio")
+    assert sel.decide(0.2, 100, 90, 1.0, 10) == (True, "few_landmarks")
+    assert sel.decide(0.6, 100, 100, 0.0, 100) == (True, "time")
+    assert sel.decide(0.2, 100, 100, 30.0, 100, still=True) == (False, "")

@@ -1,0 +1,73 @@
+"""Static initialisation: gravity direction, gyro bias, and the report of a sequence that starts moving."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from runtime.geometry import GRAVITY, so3_exp
+from runtime.init import InitConfig, StaticInitializer, gravity_aligned_rotation
+
+
+def test_gravity_aligned_rotation_known_answers():
+    assert np.allclose(gravity_aligned_rotation(np.array([0, 0, 9.81])), np.eye(3))
+    # body z pointing down (upside down): the specific force is along -z_b
+    R = gravity_aligned_rotation(np.array([0, 0, -9.81]))
+    assert np.allclose(R @ [0, 0, -1.0], [0, 0, 1])
+    # EuRoC-like: body x up
+    R = gravity_aligned_rotation(np.array([9.81, 0.0, 0.0]))
+    assert np.allclose(R @ [1.0, 0, 0], [0, 0, 1])
+    R_true = so3_exp(np.array([0.1, -0.2, 0.0]))
+    f_b = R_true.T @ np.array([0, 0, GRAVITY])
+    R = gravity_aligned_rotation(f_b)
+    assert np.allclose(R @ f_b, [0, 0, GRAVITY])
+    assert np.allclose(R.T @ R, np.eye(3))
+
+
+def _still(n=250, bg=(0.01, -0.02, 0.005), ba_z=0.05, tilt=(0.05, -0.1, 0.3), seed=0):
+    rng = np.random.default_rng(seed)
+    R = so3_exp(np.array(tilt))
+    f = R.T @ np.array([0, 0, GRAVITY]) + np.array([0, 0, ba_z])
+    ts = np.arange(n, dtype=np.int64) * 5_000_000
+    gyro = np.array(bg) + rng.normal(0, 2.4e-3, (n, 3))
+    acc = f + rng.normal(0, 0.028, (n, 3))
+    return ts, gyro, acc, R
+
+
+def test_still_window_gives_gravity_and_gyro_bias():
+    ts, gyro, acc, R = _still()
+    init = StaticInitializer(InitConfig(still_duration_s=1.0))
+    res = init.check(int(ts[-1]) + 5_000_000, ts, gyro, acc, flow_px=0.1)
+    assert res is not None
+    assert np.allclose(res.bias[3:], [0.01, -0.02, 0.005], atol=5e-4)
+    up_b = R.T @ [0, 0, 1.0]  # true world z in the body
+    assert np.degrees(np.arccos(np.clip(res.R_w_b @ up_b @ [0, 0, 1.0], -1, 1))) < 0.3
+    assert np.allclose(res.v_w, 0) and np.allclose(res.p_w, 0)
+    # accelerometer bias: only its part along gravity is estimated
+    assert np.linalg.norm(res.bias[:3]) == pytest.approx(abs(0.05 * (up_b @ [0, 0, 1.0])), abs=0.02)
+
+
+def test_not_enough_still_time_or_image_motion_waits():
+    ts, gyro, acc, _ = _still(n=100)  # 0.5 s only
+    init = StaticInitializer()
+    assert init.check(int(ts[-1]), ts, gyro, acc) is None
+    ts, gyro, acc, _ = _still()
+    assert init.check(int(ts[-1]), ts, gyro, acc, flow_px=5.0) is None  # the image moves: not still
+
+
+def test_moving_start_is_reported_clearly(caplog):
+    rng = np.random.default_rng(1)
+    ts = np.arange(400, dtype=np.int64) * 5_000_000
+    t = ts * 1e-9
+    gyro = np.stack([0.5 * np.sin(3 * t), 0.3 * np.cos(2 * t), 0.2 * np.ones_like(t)], 1)
+    acc = (
+        np.array([0, 0, 9.81])
+        + np.stack([2 * np.sin(4 * t), np.cos(5 * t), 0 * t], 1)
+        + rng.normal(0, 0.03, (400, 3))
+    )
+    init = StaticInitializer()
+    with caplog.at_level(logging.WARNING):
+        for k in range(200, 400, 10):
+            assert init.check(int(ts[k]), ts[k - 200 : k], gyro[k - 200 : k], acc[k - 200 : k]) is None
+    assert caplog.text.count("not still") == 1  # reported once
+    assert "dynamic initialisation is not implemented" in caplog.text

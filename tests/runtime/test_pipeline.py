@@ -1,0 +1,165 @@
+"""The whole system on small rendered sequences (sim/): accuracy, outputs, CLI, robustness to bad files."""
+
+import json
+import shutil
+
+import gtsam
+import numpy as np
+import pytest
+
+from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params
+from runtime.cli import eval_main, slam_main
+from runtime.geometry import pose_error
+from runtime.io.euroc import read_euroc
+from runtime.io.ply import read_ply
+from runtime.io.tum import read_tum
+from runtime.slam import SlamConfig, run_sequence
+
+sim_euroc = pytest.importorskip("sim.euroc")
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """10 s textured sequence at half resolution (376x240), IMU noise on."""
+    out = tmp_path_factory.mktemp("seq") / "tiny"
+    return sim_euroc.write_euroc_sequence(
+        out, "textured", duration=10.0, seed=3, imu_noise=True, progress=False, scale=0.5
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    m = run_sequence(read_euroc(tiny), out, SlamConfig(), progress=False)
+    return out, m
+
+
+def _copy(src, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(src, dst, symlinks=True)
+    return dst
+
+
+def test_pipeline_on_10s_rendered_sequence_reaches_bounded_ate_and_writes_outputs(tiny_run):
+    out, m = tiny_run
+    assert m["ate_se3_rmse_m"] < 0.05, m
+    assert abs(m["sim3_scale"] - 1.0) < 0.05
+    assert m["frames"] == 200 and m["frames_with_pose"] >= 200 - 3.5 * 20  # initialised after the 2.5 s rest
+    ts, T = read_tum(out / "trajectory.txt")
+    assert len(ts) == m["frames_with_pose"] and np.all(np.diff(ts) > 0)
+    kts, _ = read_tum(out / "keyframes.txt")
+    assert len(kts) == m["keyframes"] > 5
+    xyz, _ = read_ply(out / "sparse_map.ply")
+    assert xyz.shape[0] == m["map_points"] > 50
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["ate_se3_rmse_m"] == pytest.approx(m["ate_se3_rmse_m"])
+    for k in (
+        "fps",
+        "timing_ms_per_frame",
+        "ate_sim3_rmse_m",
+        "rpe_trans_rmse_m",
+        "rpe_rot_rmse_deg",
+        "events",
+    ):
+        assert k in saved
+    assert (out / "trajectory_top.png").stat().st_size > 1000
+
+
+def test_zoh_segments_and_gtsam_preintegration_reproduce_noiseless_sim_ground_truth(tmp_path):
+    root = sim_euroc.write_euroc_sequence(
+        tmp_path / "exact", "textured", duration=5.0, seed=1, imu_noise=False, progress=False, scale=0.25
+    )
+    seq = read_euroc(root)
+    imu = ImuStream.from_sequence(seq)
+    gt = seq.gt
+    pim = gtsam.PreintegratedCombinedMeasurements(preintegration_params(seq.imu), make_bias(np.zeros(6)))
+    i, j = 700, 900  # 1 s while moving (rest ends at 2.5 s)
+    integrate(pim, *imu.segment(int(gt.ts[i]), int(gt.ts[j])))
+    nav = pim.predict(gtsam.NavState(gtsam.Pose3(gt.T_w_b[i]), gt.v_w[i]), make_bias(np.zeros(6)))
+    dp, dr = pose_error(nav.pose().matrix(), gt.T_w_b[j])
+    assert np.linalg.norm(gt.p_w_b[j] - gt.p_w_b[i]) > 0.1
+    assert dp < 1e-3 and np.degrees(dr) < 0.01
+    assert np.linalg.norm(nav.velocity() - gt.v_w[j]) < 2e-3
+
+
+def test_no_ground_truth_still_writes_outputs(tiny, tmp_path):
+    root = _copy(tiny, tmp_path)
+    shutil.rmtree(root / "mav0" / "state_groundtruth_estimate0")
+    m = run_sequence(read_euroc(root), tmp_path / "out", progress=False, max_frames=100)
+    assert "ate_se3_rmse_m" not in m and m["frames_with_pose"] > 30
+    for name in ("trajectory.txt", "keyframes.txt", "sparse_map.ply", "metrics.json", "trajectory_top.png"):
+        assert (tmp_path / "out" / name).is_file()
+
+
+def test_corrupt_and_missing_images_are_logged_and_skipped(tiny, tmp_path):
+    root = _copy(tiny, tmp_path)
+    data = root / "mav0" / "cam0" / "data"
+    pngs = sorted(data.iterdir())
+    pngs[80].write_bytes(b"not a png at all")
+    pngs[81].unlink()
+    with pytest.warns(UserWarning, match="do not exist"):
+        seq = read_euroc(root)
+    m = run_sequence(seq, tmp_path / "out", progress=False, max_frames=120)
+    msgs = [msg for _, msg in m["events"]]
+    assert any("cannot read image" in msg for msg in msgs)
+    assert m["frames"] == 120 and m["frames_with_pose"] > 50
+    ts, T = read_tum(tmp_path / "out" / "trajectory.txt")
+    assert np.isfinite(T).all()
+
+
+def test_cli_runs_a_sequence_and_eval_cli_reads_its_output(tiny, tmp_path, capsys):
+    out = tmp_path / "cli"
+    slam_main(
+        [
+            f"sequence={tiny}",
+            f"out={out}",
+            "progress=false",
+            "max_frames=120",
+            "runtime.backend.window_size=8",
+        ]
+    )
+    text = capsys.readouterr().out
+    assert "ATE RMSE" in text and (out / "trajectory.txt").is_file()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["config"]["backend"]["window_size"] == 8
+    eval_main(["trajectory", f"est={out / 'trajectory.txt'}", f"gt={tiny}", f"out={tmp_path / 'ev'}"])
+    text = capsys.readouterr().out
+    assert "ate_se3_rmse_m" in text
+    ev = json.loads((tmp_path / "ev" / "trajectory_metrics.json").read_text())
+    assert ev["ate_se3_rmse_m"] == pytest.approx(m["ate_se3_rmse_m"], rel=1e-6)
+
+
+def test_cli_errors_are_clear(tiny, tmp_path, capsys):
+    root = _copy(tiny, tmp_path)
+    csv = root / "mav0" / "imu0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    lines[5] = lines[5].replace(",", ",x", 1)
+    csv.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SystemExit) as e:
+        slam_main([f"sequence={root}", f"out={tmp_path / 'o'}", "progress=false"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "imu0/data.csv" in err and "line" in err
+    with pytest.raises(SystemExit) as e:
+        slam_main([f"sequence={tmp_path / 'nowhere'}", "progress=false"])
+    assert e.value.code == 2 and "nowhere" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        slam_main(["dense=true"])
+    assert e.value.code == 2 and "tight-coupling" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # Hydra rejects unknown keys itself
+        slam_main([f"sequence={tiny}", "runtime.backend.window_sise=3"])
+    assert e.value.code != 0 and "window_sise" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # and a forced one is rejected by the typed config
+        slam_main([f"sequence={tiny}", "+runtime.backend.window_sise=3"])
+    assert e.value.code == 2 and "unknown setting runtime.backend.window_sise" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        eval_main(["trajectory", "est=a.txt"])
+    assert "gt=" in capsys.readouterr().err
+
+
+def test_rerun_recording(tiny, tmp_path):
+    pytest.importorskip("rerun")
+    m = run_sequence(
+        read_euroc(tiny), tmp_path / "rr", progress=False, max_frames=80, viz="rerun", plot=False
+    )
+    assert (tmp_path / "rr" / "slam.rrd").stat().st_size > 10_000 and m["frames"] == 80

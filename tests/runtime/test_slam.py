@@ -1,0 +1,138 @@
+"""The SLAM system at feature level (exact synthetic features, no rendering): accuracy, rest, robustness."""
+
+import logging
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from runtime import eval as ev
+from runtime.backend.imu import ImuStream
+from runtime.slam import SlamConfig, SlamSystem
+from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, FakeTracker, ImuNoise, Motion, make_imu, room_points
+
+T0 = 10**9
+IMG = np.zeros((480, 752), np.uint8)
+
+
+def run(
+    duration, motion=None, imu_noise=True, nan_rows=(), gap=None, blank=None, no_image=(), cfg=None, seed=0
+):
+    m = motion or Motion(seed=seed)
+    ts, g, a = make_imu(m, duration + 0.2, noise=ImuNoise() if imu_noise else None, seed=seed, t0_ns=T0)
+    for k in nan_rows:
+        g[k] = np.nan
+    if gap is not None:
+        keep = (ts < T0 + int(gap[0] * 1e9)) | (ts >= T0 + int(gap[1] * 1e9))
+        ts, g, a = ts[keep], g[keep], a[keep]
+    imu = ImuStream(ts, g, a, 200.0)
+    trk = FakeTracker(EUROC_CAM, EUROC_T_BS, room_points(seed=seed), m, T0, seed=seed)
+    frames = T0 + np.arange(int(duration * 20)) * 50_000_000
+    if blank is not None:
+        trk.blank = {int(f) for f in frames if blank[0] <= (f - T0) * 1e-9 < blank[1]}
+    system = SlamSystem(EUROC_CAM, EUROC_T_BS, imu, ImuNoise(), cfg or SlamConfig(), tracker=trk)
+    for i, f in enumerate(frames):
+        system.process(i, int(f), None if i in no_image else IMG)
+    return system, m
+
+
+def ate(system, m):
+    ts, T = system.trajectory()
+    return ev.trajectory_metrics(ts, T, ts, m.body((ts - T0) * 1e-9))
+
+
+def test_pipeline_on_a_10s_sequence_reaches_a_bounded_ate():
+    system, m = run(10.0)
+    met = ate(system, m)
+    assert met["ate_se3_rmse_m"] < 0.02, met
+    assert met["path_length_m"] > 3.0
+    assert abs(met["sim3_scale"] - 1) < 0.02  # metric scale from the IMU
+    assert len(system.backend.history) > 15
+    ids, P = system.backend.all_points()
+    assert len(ids) > 200
+    assert system.records[0].ts - T0 < 2.0e9  # initialised within the 1.5 s rest + 0.5 s
+    assert all(r.status in ("tracking", "still") for r in system.records)
+
+
+def test_still_camera_gives_a_still_trajectory():
+    system, m = run(6.0, motion=Motion(seed=0, still=True))
+    ts, T = system.trajectory()
+    assert len(ts) > 90
+    drift = np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1).max()
+    assert drift < 5e-3, drift
+    rot = max(
+        np.degrees(np.arccos(np.clip((np.trace(T[0, :3, :3].T @ Ti[:3, :3]) - 1) / 2, -1, 1))) for Ti in T
+    )
+    assert rot < 0.2
+
+
+def test_a_sequence_that_starts_moving_is_reported_and_not_initialised(caplog):
+    with caplog.at_level(logging.WARNING):
+        system, _ = run(4.0, motion=Motion(seed=0, t_rest=0.0, t_ramp=0.3))
+    assert not system.records and not system.initialized
+    assert "not still" in caplog.text and "dynamic initialisation is not implemented" in caplog.text
+
+
+def test_textureless_period_coasts_on_imu_and_recovers():
+    system, m = run(12.0, blank=(5.0, 6.5))
+    msgs = " | ".join(msg for _, msg in system.events)
+    assert "visual tracking lost" in msgs and "visual tracking regained" in msgs
+    statuses = [r.status for r in system.records]
+    assert "coasting" in statuses and statuses[-1] == "tracking"
+    assert len(system.records) == 240 - system.records[0].frame_idx  # a pose for every frame after init
+    assert ate(system, m)["ate_se3_rmse_m"] < 0.1
+
+
+def test_imu_nan_and_gaps_keep_the_run_going(caplog):
+    with caplog.at_level(logging.WARNING):
+        system, m = run(10.0, nan_rows=(900, 901, 1300), gap=(6.0, 6.08))
+    assert "non-finite" in caplog.text and "gap" in caplog.text
+    assert ate(system, m)["ate_se3_rmse_m"] < 0.05
+    with caplog.at_level(logging.WARNING):
+        system, m = run(10.0, gap=(6.0, 6.5))  # long gap: re-initialise from the propagated state
+    assert any("IMU gap of 0.505 s" in msg and "re-initialising" in msg for _, msg in system.events)
+    ts, T = system.trajectory()
+    assert ts[-1] == T0 + 199 * 50_000_000 and np.isfinite(T).all()
+    assert ate(system, m)["ate_se3_rmse_m"] < 0.3
+
+
+def test_missing_images_give_imu_poses_and_are_logged():
+    system, m = run(8.0, no_image={80, 81, 82, 120})
+    recs = {r.frame_idx: r for r in system.records}
+    assert all(recs[i].status == "no_image" for i in (80, 81, 82, 120))
+    assert sum("no usable image" in msg for _, msg in system.events) == 4
+    assert ate(system, m)["ate_se3_rmse_m"] < 0.03
+
+
+def test_config_from_dict_checks_keys_and_types():
+    c = SlamConfig.from_dict(
+        {"backend": {"window_size": 7}, "features": {"detector": "fast"}, "refine_iterations": 3}
+    )
+    assert c.backend.window_size == 7 and c.features.detector == "fast" and c.refine_iterations == 3
+    with pytest.raises(ValueError, match="runtime.backend.windowsize"):
+        SlamConfig.from_dict({"backend": {"windowsize": 7}})
+    with pytest.raises(ValueError, match="must be a number"):
+        SlamConfig.from_dict({"backend": {"window_size": "x"}})
+    with pytest.raises(ValueError, match="integer"):
+        SlamConfig.from_dict({"backend": {"window_size": 2.5}})
+
+
+def test_runtime_does_not_import_torch():
+    code = "import sys, runtime.slam, runtime.cli, runtime.eval; assert 'torch' not in sys.modules, 'torch!'"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_runtime_presets_match_the_typed_config():
+    import dataclasses
+    from pathlib import Path
+
+    import yaml
+
+    conf = Path(__file__).resolve().parents[2] / "conf" / "runtime"
+    d = yaml.safe_load((conf / "default.yaml").read_text())
+    assert dataclasses.asdict(SlamConfig.from_dict(d)) == dataclasses.asdict(SlamConfig())  # same values
+    assert set(d) == set(dataclasses.asdict(SlamConfig()))  # and every key spelled out
+    fast = yaml.safe_load((conf / "fast.yaml").read_text())
+    assert set(fast) == set(d)  # presets share the keys
+    SlamConfig.from_dict(fast)

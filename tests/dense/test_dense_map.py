@@ -1,0 +1,160 @@
+"""Local dense map: fusion round trip on a wall, uncertainty filter, voxels, saved maps, depth metrics."""
+
+import cv2
+import numpy as np
+import pytest
+
+from runtime.dense_map import (
+    DenseMapConfig,
+    backproject,
+    depth_metrics,
+    fuse_depth_maps,
+    gt_depth_to_network,
+    mean_metrics,
+    save_keyframe_maps,
+    sparse_depth_image,
+    uncertainty_mask,
+    voxel_downsample,
+    write_dense_map,
+)
+from runtime.geometry import Camera, NetworkMapping
+from runtime.io.ply import read_ply
+from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
+from tests.runtime.synth import EUROC_CAM
+
+H, W = 48, 64
+CAM = Camera(*network_K(H, W), W, H)
+
+
+def test_backproject_known_answer():
+    cam = Camera(2.0, 2.0, 1.0, 1.0, 3, 3)
+    p, uv = backproject(np.full((3, 3), 2.0), cam)
+    assert p.shape == (9, 3)
+    np.testing.assert_allclose(p[0], [-1.0, -1.0, 2.0])
+    np.testing.assert_allclose(p[-1], [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(uv[-1], [2.0, 2.0])
+    d = np.full((3, 3), 2.0)
+    d[1, 1] = 0.0
+    assert backproject(d, cam)[0].shape == (8, 3)  # 0 = invalid
+    assert backproject(np.full((3, 3), 2.0), cam, stride=2)[0].shape == (4, 3)
+    with pytest.raises(ValueError, match="4x3"):
+        backproject(np.ones((3, 4)), cam)
+
+
+def test_wall_fuses_onto_the_wall(tmp_path):
+    """Two keyframes see the wall x_w = 3 with exact depth maps: every fused point is on the wall."""
+    Ts = [body_pose((0.0, 0.0, 0.1), (0.0, 0.0, 0.0)), body_pose((0.0, 0.05, -0.1), (0.3, 0.4, 0.1))]
+    depths = [plane_depth(T, CAM.intrinsics, (H, W), 3.0) for T in Ts]
+    grey = [np.full((H, W), 100, np.uint8), np.full((H, W), 200, np.uint8)]
+    cfg = DenseMapConfig(voxel=0.0, max_rel_uncertainty=None)
+    xyz, rgb = fuse_depth_maps(depths, Ts, CAM, T_B_C, images=grey, cfg=cfg)
+    assert xyz.shape == (2 * H * W, 3) and rgb.shape == xyz.shape and rgb.dtype == np.uint8
+    np.testing.assert_allclose(xyz[:, 0], 3.0, atol=1e-9)
+    assert set(np.unique(rgb).tolist()) == {100, 200}
+    # the fused cloud spans what the cameras see: the first camera's centre ray hits the wall in its centre
+    T_w_c = Ts[0] @ T_B_C
+    ray = T_w_c[:3, 2]
+    hit = T_w_c[:3, 3] + ray * (3.0 - T_w_c[0, 3]) / ray[0]
+    assert np.min(np.linalg.norm(xyz - hit, axis=1)) < 0.05
+    # voxel averaging of coplanar points stays on the plane; written and read back as PLY
+    cfg = DenseMapConfig(voxel=0.1, max_rel_uncertainty=None)
+    xyz_v, rgb_v = fuse_depth_maps(depths, Ts, CAM, T_B_C, images=grey, cfg=cfg)
+    assert 10 < xyz_v.shape[0] < xyz.shape[0]
+    np.testing.assert_allclose(xyz_v[:, 0], 3.0, atol=1e-9)
+    path = write_dense_map(tmp_path, xyz_v, rgb_v)
+    assert path.name == "dense_map.ply"
+    back, col = read_ply(path)
+    np.testing.assert_allclose(back, xyz_v, atol=1e-5)
+    np.testing.assert_array_equal(col, rgb_v)
+
+
+def test_uncertainty_filter():
+    d = np.full((H, W), 2.0)
+    B = np.full((H, W), 0.05)
+    B[:, : W // 2] = 0.5  # left half unreliable
+    d[0, 0] = 20.0  # out of range
+    m = uncertainty_mask(d, B, DenseMapConfig(max_rel_uncertainty=0.1))
+    assert m.sum() == H * (W - W // 2)
+    m = uncertainty_mask(d, B, DenseMapConfig(max_uncertainty=0.6, max_rel_uncertainty=None))
+    assert m.sum() == H * W - 1
+    m = uncertainty_mask(d, B, DenseMapConfig(max_uncertainty=0.04, max_rel_uncertainty=None))
+    assert m.sum() == 0
+    T = body_pose()
+    xyz, rgb = fuse_depth_maps([d], [T], CAM, T_B_C, uncertainties=[B], cfg=DenseMapConfig(voxel=0.0))
+    assert xyz.shape == (H * (W - W // 2), 3) and rgb is None
+
+
+def test_voxel_downsample_hand_values():
+    p = np.array([[0.01, 0.0, 0.0], [0.03, 0.02, 0.0], [0.5, 0.0, 0.0], [-0.01, 0.0, 0.0]])
+    c = np.array([[10, 20, 30], [30, 40, 50], [0, 0, 0], [255, 255, 255]], np.uint8)
+    out, col = voxel_downsample(p, 0.1, c)
+    np.testing.assert_allclose(out, [[-0.01, 0.0, 0.0], [0.02, 0.01, 0.0], [0.5, 0.0, 0.0]])
+    np.testing.assert_array_equal(col, [[255, 255, 255], [20, 30, 40], [0, 0, 0]])
+    same, _ = voxel_downsample(p, 0.0)
+    np.testing.assert_array_equal(same, p)
+
+
+def test_save_keyframe_maps_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    d = rng.uniform(0.5, 6.0, (H, W)).astype(np.float32)
+    B = rng.uniform(0.01, 0.3, (H, W)).astype(np.float32)
+    paths = save_keyframe_maps(tmp_path / "kf", "kf_000012", d, B)
+    assert [p.name for p in paths] == ["kf_000012.npz", "kf_000012_depth.png", "kf_000012_uncertainty.png"]
+    z = np.load(paths[0])
+    np.testing.assert_array_equal(z["depth"], d)
+    np.testing.assert_array_equal(z["uncertainty"], B)
+    png = cv2.imread(str(paths[1]), cv2.IMREAD_UNCHANGED)
+    assert png.dtype == np.uint16
+    np.testing.assert_allclose(png / 5000.0, d, atol=1e-4)
+
+
+def test_gt_depth_to_network():
+    # no distortion and a 1:1 mapping: unchanged
+    cam = Camera(50.0, 50.0, 31.5, 23.5, W, H)
+    g = np.random.default_rng(0).uniform(1, 4, (H, W)).astype(np.float32)
+    g[3, 4] = 0.0
+    np.testing.assert_array_equal(gt_depth_to_network(g, cam, NetworkMapping.fit(W, H, W, H)), g)
+    # EuRoC distortion + 752x480 -> 224x224: a constant map stays constant where valid, nearest keeps values
+    m = NetworkMapping.fit(EUROC_CAM.width, EUROC_CAM.height, 224, 224)
+    g = np.full((EUROC_CAM.height, EUROC_CAM.width), 2.5, np.float32)
+    g[:, :376] = 1.5
+    out = gt_depth_to_network(g, EUROC_CAM, m)
+    assert out.shape == (224, 224)
+    assert set(np.unique(out).tolist()) <= {0.0, 1.5, 2.5}
+    assert (out > 0).mean() > 0.9
+    with pytest.raises(ValueError, match="camera"):
+        gt_depth_to_network(np.ones((10, 10)), EUROC_CAM, m)
+
+
+def test_sparse_depth_image():
+    uv = np.array([[1.2, 2.4], [0.8, 1.6], [5.0, 5.0], [-1.0, 0.0], [3.0, 3.0]])
+    z = np.array([2.0, 1.5, -1.0, 3.0, 4.0])
+    s = sparse_depth_image(uv, z, (6, 6))
+    assert s.dtype == np.float32 and s[2, 1] == 1.5  # two points on one pixel: the closer wins
+    assert s[3, 3] == 4.0 and s[5, 5] == 0.0 and np.count_nonzero(s) == 2
+
+
+def test_depth_metrics_hand_values():
+    p = np.array([[1.0, 2.0], [4.5, 9.0]])
+    g = np.array([[1.0, 1.0], [5.0, 0.0]])
+    m = depth_metrics(p, g)
+    assert m["n"] == 3 and m["coverage"] == 1.0
+    assert m["rmse"] == pytest.approx(np.sqrt((0 + 1 + 0.25) / 3))
+    assert m["mae"] == pytest.approx(0.5)
+    assert m["abs_rel"] == pytest.approx((0 + 1 + 0.1) / 3)
+    assert m["irmse"] == pytest.approx(np.sqrt((0 + 0.25 + (1 / 4.5 - 0.2) ** 2) / 3))
+    assert m["delta1"] == pytest.approx(2 / 3)  # ratios 1, 2, 1.11
+    assert m["delta2"] == pytest.approx(2 / 3)  # 2 > 1.5625
+    assert m["delta3"] == pytest.approx(2 / 3)  # 2 > 1.25^3 = 1.953 as well
+    assert depth_metrics(np.array([1.9]), np.array([1.0]))["delta3"] == 1.0  # 1.9 < 1.953
+    # a sparse prediction: only pixels with a value count, coverage says how many
+    sp = np.array([[1.1, 0.0], [0.0, 3.0]])
+    m = depth_metrics(sp, g)
+    assert m["n"] == 1 and m["coverage"] == pytest.approx(1 / 3) and m["rmse"] == pytest.approx(0.1)
+    m = depth_metrics(sp, g, mask=np.array([[False, True], [True, True]]))
+    assert m["n"] == 0 and np.isnan(m["rmse"])
+    agg = mean_metrics([depth_metrics(p, g), depth_metrics(sp, g), m])
+    assert agg["images"] == 2 and agg["n"] == 4
+    assert agg["rmse"] == pytest.approx((np.sqrt(1.25 / 3) + 0.1) / 2)
+    with pytest.raises(ValueError, match="shape"):
+        depth_metrics(p, g[:1])

@@ -1,6 +1,7 @@
 """Console entry points ``dit-slam`` and ``dit-eval``.
 
     dit-slam [sequence=DIR] [out=DIR] [dense=false] [viz=none|rerun] [runtime=default|fast] [runtime.x.y=...]
+             [dense=true [model=DIR] [dense_settings.x=...]]
     dit-eval trajectory est=TUM gt=TUM|EUROC_DIR|data.csv [out=DIR] [rpe_delta_s=1.0]
     dit-eval depth ...            (forwarded to train.evaluate.main, the depth evaluation)
 
@@ -69,14 +70,6 @@ def _slam(cfg) -> int:
         if name.split(".")[0] in ("runtime", "dit-slam"):
             logging.getLogger(name).disabled = False
     logging.getLogger("runtime").setLevel(level)
-    if bool(cfg.dense):
-        print(
-            "dit-slam: dense=true needs the tight-coupling part (depth codes C(k) and the depth residuals of "
-            "Eq. 13-14 in the factor graph), which has not landed yet; run with dense=false for the sparse "
-            "system.",
-            file=sys.stderr,
-        )
-        return 2
     from runtime.io.euroc import read_euroc
     from runtime.slam import SlamConfig, run_sequence
 
@@ -85,6 +78,26 @@ def _slam(cfg) -> int:
     except ValueError as e:
         print(f"dit-slam: bad setting: {e}", file=sys.stderr)
         return 2
+    dense_cfg, model_dir = None, None
+    if bool(cfg.get("dense", False)):
+        from runtime.dense import DenseConfig
+        from runtime.network import DepthNetwork, ModelError, default_model_dir
+
+        try:
+            dense_cfg = DenseConfig.from_dict(
+                OmegaConf.to_container(cfg.get("dense_settings") or {}, resolve=True)
+            )
+        except ValueError as e:
+            print(f"dit-slam: bad setting: {e}", file=sys.stderr)
+            return 2
+        model_dir = (
+            Path(str(cfg.model_dir)).expanduser() if cfg.get("model_dir") is not None else default_model_dir()
+        )
+        try:
+            DepthNetwork(model_dir)  # fail before the run, naming the problem
+        except (ModelError, OSError) as e:
+            print(f"dit-slam: cannot load the depth model: {e}", file=sys.stderr)
+            return 2
     if cfg.sequence is None:
         s = cfg.sim
         try:
@@ -120,6 +133,8 @@ def _slam(cfg) -> int:
             progress=bool(cfg.progress),
             max_frames=cfg.max_frames,
             viz=None if str(cfg.viz) == "none" else str(cfg.viz),
+            dense=dense_cfg,
+            model_dir=model_dir,
         )
     except ImportError as e:  # e.g. viz=rerun without rerun-sdk
         print(f"dit-slam: {e}", file=sys.stderr)
@@ -136,6 +151,17 @@ def _slam(cfg) -> int:
         )
     if m.get("error"):
         lines.append(f"  ERROR: {m['error']}")
+    dm = m.get("depth_metrics")
+    if dm:
+        lines.append(
+            "  depth RMSE [m] on "
+            f"{m.get('depth_metrics_keyframes', 0)} keyframes: sparse points {dm['sparse']['rmse']:.3f}, "
+            f"prior c=0 {dm['prior']['rmse']:.3f}, optimised code {dm['optimised']['rmse']:.3f}"
+        )
+    if dense_cfg is not None:
+        lines.append(
+            f"  wrote {out}/{{dense_map.ply, keyframe_depth/}} ({m.get('dense_map_points', 0)} points)"
+        )
     lines.append(
         f"  wrote {out}/{{trajectory.txt, keyframes.txt, sparse_map.ply, metrics.json, trajectory_top.png}}"
     )
@@ -154,6 +180,8 @@ def slam_main(argv: list[str] | None = None) -> None:
     def _run(cfg) -> None:
         status["code"] = _slam(cfg)
 
+    # ``model=DIR`` names the depth network; Hydra would read it as the training config group conf/model/
+    args = [("model_dir=" + a[len("model=") :]) if a.startswith("model=") else a for a in args]
     saved = sys.argv
     sys.argv = [Path(saved[0]).name if saved else "dit-slam", *args]
     try:

@@ -20,7 +20,9 @@ factor,
 Outputs (:func:`run_sequence`): ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initialisation; poses of
 non-keyframes are stored relative to their keyframe and composed with its final estimate, as DROID-SLAM's
 trajectory filler does; ``trajectory_mode=online`` writes the causal estimates instead), ``keyframes.txt``,
-``sparse_map.ply``, ``metrics.json``, ``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``.
+``sparse_map.ply``, ``metrics.json``, ``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``. With
+``dense`` (:mod:`runtime.dense`): depth codes and the Eq. 13-14 factors join the window through the backend's
+provider hook, and ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics are written too.
 
 This module never imports torch (checked by a test).
 """
@@ -153,6 +155,8 @@ class SlamSystem:
         imu_params: noise densities (io ``ImuParams``).
         cfg: settings.
         tracker: optional replacement of the KLT tracker (same interface; tests feed synthetic features).
+        dense: optional :class:`runtime.dense.DenseMapper` (``dense=true``): registered with the backend as a
+            factor provider and given every new keyframe's image; None: the sparse system, unchanged.
     """
 
     def __init__(
@@ -163,6 +167,7 @@ class SlamSystem:
         imu_params,
         cfg: SlamConfig | None = None,
         tracker=None,
+        dense=None,
     ) -> None:
         import gtsam
 
@@ -187,6 +192,10 @@ class SlamSystem:
         self.n_frames = 0
         self.n_map_matches = 0
         self.kf_reasons: dict[str, int] = defaultdict(int)
+        self.dense = dense
+        if dense is not None:
+            dense.timers = self.timers
+            self.backend.add_provider(dense)
         self._reset_state()
 
     # ------------------------------------------------------------------ state
@@ -495,6 +504,9 @@ class SlamSystem:
         elif self.cfg.reloc.enabled and self.cfg.reloc.guided and not self.lost:
             self._guided_map_match(kf, image)
         t0 = self._toc("reloc", t0)
+        if self.dense is not None:
+            self.dense.on_keyframe(self.backend, kf.kf_id, frame_idx, image, self.tracker.current(ts).uv_u)
+            t0 = self._tic()  # the network's time is in the "dense_network" timer
         stats = self.backend.optimize()
         drop, n_out = self.backend.remove_outliers()
         if n_out > 0.05 * max(stats.get("n_factors", 1), 1):
@@ -743,8 +755,15 @@ def run_sequence(
     max_frames: int | None = None,
     viz: str | None = None,
     plot: bool = True,
+    dense=None,
+    model_dir: str | Path | None = None,
 ) -> dict:
     """Run the system over an io ``EurocSequence`` and write every output into ``out_dir``.
+
+    ``dense``: a :class:`runtime.dense.DenseConfig` runs the tightly coupled dense system with the network in
+    ``model_dir`` (default: the shipped model) and also writes ``dense_map.ply``, ``keyframe_depth/`` and the
+    dense metrics (depth metrics of the sparse points, the c = 0 prior and the optimised codes when the
+    sequence has ``mav0/depth0``); None: the sparse system.
 
     Returns:
         The metrics dictionary also written to ``metrics.json``.
@@ -757,7 +776,15 @@ def run_sequence(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     imu = ImuStream.from_sequence(seq, cfg.imu.gap_factor)
-    system = SlamSystem(seq.camera, seq.T_b_c, imu, seq.imu, cfg)
+    mapper = None
+    if dense is not None:
+        from runtime.dense import DenseMapper
+        from runtime.network import DepthNetwork, default_model_dir
+
+        net = DepthNetwork(model_dir if model_dir is not None else default_model_dir())
+        depth_gt = seq.depth if getattr(seq, "has_depth", False) else None
+        mapper = DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt)
+    system = SlamSystem(seq.camera, seq.T_b_c, imu, seq.imu, cfg, dense=mapper)
     recorder = None
     if viz == "rerun":
         from runtime.viz import RerunRecorder
@@ -819,6 +846,16 @@ def run_sequence(
         "n_events": len(system.events),
         "config": _jsonable(asdict(cfg)),
     }
+    if mapper is not None:
+        t0 = time.perf_counter()
+        metrics.update(mapper.finish(system.backend, out))
+        tm = system.timing_summary()
+        metrics["timing_dense_ms_per_frame"] = {
+            "network": tm.get("dense_network", 0.0),
+            "factor_building": tm.get("dense_factors", 0.0),
+            "optimisation": tm.get("optimize", 0.0) - tm.get("dense_factors", 0.0),
+            "outputs_s": time.perf_counter() - t0,
+        }
     if len(ts) == 0:
         metrics["error"] = "never initialised (no still period found; see events)"
         log.error("never initialised: no trajectory; see the events in metrics.json")

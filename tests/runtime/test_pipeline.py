@@ -143,9 +143,9 @@ def test_cli_errors_are_clear(tiny, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         slam_main([f"sequence={tmp_path / 'nowhere'}", "progress=false"])
     assert e.value.code == 2 and "nowhere" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as e:
-        slam_main(["dense=true"])
-    assert e.value.code == 2 and "tight-coupling" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # dense=true checks its settings first (runs: tests/dense)
+        slam_main([f"sequence={tiny}", "dense=true", "dense_settings.n_consis=0"])
+    assert e.value.code == 2 and "n_consis" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:  # Hydra rejects unknown keys itself
         slam_main([f"sequence={tiny}", "runtime.backend.window_sise=3"])
     assert e.value.code != 0 and "window_sise" in capsys.readouterr().err

@@ -1,0 +1,226 @@
+"""Ablation of the tight coupling (the shape of the paper's Table 3): sparse vs dense with Eq. 13 only vs
+dense with Eq. 13 + 14, on synthetic ``textured`` and ``whitewall`` sequences (sim/), with the shipped depth
+model.
+
+    python benchmarks/bench_dense.py                              # 60 s, seeds 0 1 2 (the issue's setting)
+    python benchmarks/bench_dense.py --duration 30 --seeds 0      # smaller (whitewall needs >= 24 s)
+    python benchmarks/bench_dense.py --scale 0.5 --set n_consis=200   # half-resolution images
+
+Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one process, runs one after another),
+and for the dense runs the depth metrics of Table 2 on the keyframes that held a code, against the rendered
+ground truth (``mav0/depth0``) at network resolution: (a) the sparse map points, (b) the network prior at
+c = 0, (c) the optimised code. The machine is shared and noisy: compare FPS as ratios within one invocation.
+Prints one table (mean over seeds per preset and mode, plus per-run rows) and writes ``bench_dense.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from runtime.dense import DenseConfig  # noqa: E402
+from runtime.io.euroc import read_euroc  # noqa: E402
+from runtime.slam import SlamConfig, run_sequence  # noqa: E402
+
+MODES = {
+    "sparse": None,
+    "dense_eq13": {"use_depth_residual": True, "use_consistency": False},
+    "dense_eq13_14": {"use_depth_residual": True, "use_consistency": True},
+}
+
+
+def sequence(data: Path, preset: str, duration: float, seed: int, scale: float) -> Path:
+    """Render (once) and return the sequence root."""
+    from sim.euroc import write_euroc_sequence
+
+    root = data / f"euroc_{preset}_{duration:g}s_s{seed}_x{scale:g}"
+    if (root / "mav0" / "cam0" / "data.csv").is_file() and (root / "mav0" / "depth0" / "data.csv").is_file():
+        return root
+    t0 = time.perf_counter()
+    out = Path(
+        write_euroc_sequence(
+            root, preset, duration=duration, seed=seed, imu_noise=True, progress=False, scale=scale
+        )
+    )
+    print(f"bench_dense: rendered {out} in {time.perf_counter() - t0:.0f} s", flush=True)
+    return out
+
+
+def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
+    import yaml
+
+    base = MODES[mode]
+    if base is None:
+        return None
+    d = dict(base)
+    for s in sets:
+        k, sep, v = s.partition("=")
+        if not sep:
+            raise SystemExit(f"bench_dense: --set needs key=value, got {s!r}")
+        d[k] = yaml.safe_load(v)
+    d.update(base)  # the mode decides the residuals
+    d.setdefault("save_maps", False)
+    return DenseConfig.from_dict(d)
+
+
+def _row(preset: str, seed: int, mode: str, m: dict) -> dict:
+    dm = m.get("depth_metrics") or {}
+    r = {
+        "preset": preset,
+        "seed": seed,
+        "mode": mode,
+        "ate": m.get("ate_se3_rmse_m", float("nan")),
+        "fps": m["fps"],
+        "keyframes": m["keyframes"],
+        "decoder_calls": m.get("decoder_calls", 0),
+        "timing_dense_ms_per_frame": m.get("timing_dense_ms_per_frame"),
+    }
+    for stage, key in (("sparse", "a"), ("prior", "b"), ("optimised", "c")):
+        s = dm.get(stage) or {}
+        r[f"rmse_{key}"] = s.get("rmse", float("nan"))
+        r[f"absrel_{key}"] = s.get("abs_rel", float("nan"))
+        r[f"delta1_{key}"] = s.get("delta1", float("nan"))
+    return r
+
+
+COLS = ("ate", "fps", "rmse_a", "rmse_b", "rmse_c", "absrel_b", "absrel_c", "delta1_b", "delta1_c")
+
+
+def fmt_table(rows: list[dict], per_run: bool = True) -> str:
+    head = (
+        f"{'preset':10s} {'mode':14s} {'seeds':>5s} {'ATE m':>8s} {'FPS':>6s} {'RMSE(a)':>8s} "
+        f"{'RMSE(b)':>8s} {'RMSE(c)':>8s} {'AbsRel b':>8s} {'AbsRel c':>8s} {'d1 b':>6s} {'d1 c':>6s}"
+    )
+    lines = [head, "-" * len(head)]
+    groups = {}
+    for r in rows:
+        groups.setdefault((r["preset"], r["mode"]), []).append(r)
+    for (preset, mode), rs in groups.items():
+        mean = {
+            c: float(np.nanmean([r[c] for r in rs])) if any(np.isfinite(r[c]) for r in rs) else float("nan")
+            for c in COLS
+        }
+        lines.append(
+            f"{preset:10s} {mode:14s} {len(rs):5d} {mean['ate']:8.4f} {mean['fps']:6.1f} "
+            f"{mean['rmse_a']:8.3f} {mean['rmse_b']:8.3f} {mean['rmse_c']:8.3f} "
+            f"{mean['absrel_b']:8.3f} {mean['absrel_c']:8.3f} "
+            f"{mean['delta1_b']:6.3f} {mean['delta1_c']:6.3f}"
+        )
+    if per_run:
+        lines.append("per run:")
+        for r in rows:
+            lines.append(
+                f"  {r['preset']:10s} {r['mode']:14s} seed {r['seed']}: ATE {r['ate']:.4f} m, "
+                f"{r['fps']:.1f} FPS, RMSE a/b/c {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f} m, "
+                "decoder runs "
+                f"{r['decoder_calls']}"
+            )
+    return "\n".join(lines)
+
+
+def bars(rows: list[dict]) -> dict:
+    """The issue's quality bars, evaluated on the means over seeds."""
+
+    def mean(preset, mode, col):
+        v = [r[col] for r in rows if r["preset"] == preset and r["mode"] == mode]
+        return float(np.nanmean(v)) if v else float("nan")
+
+    out = {}
+    for preset in sorted({r["preset"] for r in rows}):
+        s, d = mean(preset, "sparse", "ate"), mean(preset, "dense_eq13_14", "ate")
+        need = s if preset == "textured" else 0.9 * s
+        out[f"{preset}_dense_ate_le_{'sparse' if preset == 'textured' else '0.9_sparse'}"] = {
+            "sparse": s,
+            "dense": d,
+            "met": bool(d <= need),
+        }
+        for mode in ("dense_eq13", "dense_eq13_14"):
+            b, c = mean(preset, mode, "rmse_b"), mean(preset, mode, "rmse_c")
+            out[f"{preset}_{mode}_rmse_c_lt_b"] = {"prior": b, "optimised": c, "met": bool(c < b)}
+        f = min(
+            (r["fps"] for r in rows if r["preset"] == preset and r["mode"] == "dense_eq13_14"),
+            default=float("nan"),
+        )
+        out[f"{preset}_dense_fps_ge_15"] = {"fps_min": f, "met": bool(f >= 15)}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--presets", nargs="+", default=["textured", "whitewall"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--scale", type=float, default=1.0, help="image scale of the rendered sequences")
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
+    ap.add_argument("--set", nargs="*", default=[], help="DenseConfig overrides key=value")
+    ap.add_argument(
+        "--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder"
+    )
+    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_dense"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.ERROR)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    machine = {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "data": "synthetic (sim/)",
+    }
+    rows = []
+    for preset in args.presets:
+        for seed in args.seeds:
+            root = sequence(Path(args.data), preset, args.duration, seed, args.scale)
+            for mode in args.modes:
+                t0 = time.perf_counter()
+                m = run_sequence(
+                    read_euroc(root),
+                    out / f"{preset}_s{seed}_{mode}",
+                    SlamConfig(),
+                    progress=False,
+                    plot=False,
+                    dense=_dense_cfg(mode, args.set),
+                )
+                rows.append(_row(preset, seed, mode, m))
+                r = rows[-1]
+                print(
+                    f"bench_dense: {preset} seed {seed} {mode}: ATE {r['ate']:.4f} m, {r['fps']:.1f} FPS, "
+                    f"RMSE a/b/c {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f} "
+                    f"({time.perf_counter() - t0:.0f} s)",
+                    flush=True,
+                )
+    table = fmt_table(rows)
+    b = bars(rows)
+    print(table)
+    print("bars:")
+    for k, v in b.items():
+        print(f"  {k}: {v}")
+    res = {
+        "machine": machine,
+        "args": vars(args),
+        "columns": (
+            "ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code"
+        ),
+        "rows": rows,
+        "bars": b,
+        "table": table,
+    }
+    (out / "bench_dense.json").write_text(json.dumps(res, indent=2, default=float))
+    print(f"bench_dense: wrote {out / 'bench_dense.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,154 @@
+"""The dense (tightly coupled) system end to end on a short rendered sequence with the shipped model."""
+
+import json
+
+import numpy as np
+import pytest
+
+from runtime.cli import slam_main
+from runtime.dense import DenseConfig, LinearizedDepth
+from runtime.io.euroc import read_euroc
+from runtime.io.ply import read_ply
+from runtime.io.tum import read_tum
+from runtime.network import DepthNetwork, default_model_dir
+from runtime.slam import run_sequence
+
+sim_euroc = pytest.importorskip("sim.euroc")
+
+
+@pytest.fixture(scope="module")
+def seq8(tmp_path_factory):
+    """8 s textured sequence at half resolution (376x240) with depth0, IMU noise on."""
+    out = tmp_path_factory.mktemp("seq") / "seq8"
+    return sim_euroc.write_euroc_sequence(
+        out, "textured", duration=8.0, seed=3, imu_noise=True, progress=False, scale=0.5
+    )
+
+
+@pytest.fixture(scope="module")
+def runs(seq8, tmp_path_factory):
+    """A sparse run and a dense run (Eq. 13 + 14) recording every decoder batch."""
+    sparse_out = tmp_path_factory.mktemp("sparse")
+    m_sparse = run_sequence(read_euroc(seq8), sparse_out, progress=False, plot=False)
+    dense_out = tmp_path_factory.mktemp("dense")
+    calls = []
+    orig = DepthNetwork.decode
+
+    def spy(self, codes, features):
+        codes = np.atleast_2d(np.asarray(codes, np.float32))
+        calls.append((id(features), codes.shape[0], codes[0].tobytes()))
+        return orig(self, codes, features)
+
+    DepthNetwork.decode = spy
+    try:
+        m_dense = run_sequence(
+            read_euroc(seq8), dense_out, dense=DenseConfig(n_consis=200), progress=False, plot=False
+        )
+    finally:
+        DepthNetwork.decode = orig
+    return sparse_out, m_sparse, dense_out, m_dense, calls
+
+
+def test_dense_run_completes_writes_outputs_and_keeps_the_ate_bounded(runs):
+    sparse_out, m_sparse, out, m, _ = runs
+    assert m["ate_se3_rmse_m"] < 0.03, m["ate_se3_rmse_m"]
+    assert m["ate_se3_rmse_m"] < 2.0 * m_sparse["ate_se3_rmse_m"] + 0.005
+    xyz, rgb = read_ply(out / "dense_map.ply")
+    assert xyz.shape[0] == m["dense_map_points"] > 1000 and rgb is not None
+    assert np.isfinite(xyz).all()
+    maps = sorted((out / "keyframe_depth").glob("kf*.npz"))
+    assert len(maps) == m["dense_window_keyframes"] >= 3
+    with np.load(maps[0]) as z:
+        assert z["depth"].shape == (128, 128) and (z["depth"] > 0).all() and (z["uncertainty"] > 0).all()
+    saved = json.loads((out / "metrics.json").read_text())
+    dm = saved["depth_metrics"]
+    assert saved["depth_metrics_keyframes"] >= 5
+    for stage in ("sparse", "prior", "optimised"):
+        assert np.isfinite(dm[stage]["rmse"]) and dm[stage]["n"] > 0
+    assert dm["prior"]["coverage"] == pytest.approx(1.0) and dm["sparse"]["coverage"] < 0.1
+    # the optimised codes must not make the depth worse than the c = 0 prior on this sequence
+    assert dm["optimised"]["rmse"] < dm["prior"]["rmse"] + 0.01
+    t = saved["timing_dense_ms_per_frame"]
+    assert set(t) >= {"network", "factor_building", "optimisation"} and all(v >= 0 for v in t.values())
+    assert saved["dense_mean_code_keyframes"] > 2 and saved["dense_mean_consis_rows"] > 0
+    assert saved["dense_mean_geo_rows"] > 0
+    # the sparse run writes none of the dense outputs
+    assert not (sparse_out / "dense_map.ply").exists() and "depth_metrics" not in m_sparse
+
+
+def test_decoder_runs_once_per_code(runs):
+    *_, m, calls = runs
+    assert m["decoder_calls"] == len(calls) > 0
+    jac = [(f, c) for f, b, c in calls if b > 1]  # Jacobian batches (Eq. 17): one per (keyframe, code)
+    assert len(jac) == len(set(jac)), "a keyframe's Jacobian was computed twice for the same code"
+    assert all(b == 9 for _, b, _ in calls if b > 1)  # nominal + 8 perturbed codes in one batch
+    # at most one relinearisation per code keyframe and optimisation, plus two decodes per evaluated keyframe
+    bound = m["dense_optimisations"] * m["dense_mean_code_keyframes"] + 2 * (m["keyframes"] + 1)
+    assert len(calls) <= bound + 1e-9, (len(calls), bound)
+
+
+def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
+    class Lin:
+        """Quadratic decoder D(c) = D0 + B c + 0.5 (c.c) Q."""
+
+        def __init__(self):
+            rng = np.random.default_rng(0)
+            self.D0 = rng.uniform(1, 3, (4, 5))
+            self.B = rng.normal(size=(4, 5, 3)) * 0.1
+            self.Q = rng.normal(size=(4, 5)) * 0.01
+            self.net = type("N", (), {"code_dim": 3})()
+            self.uncertainty = np.full((4, 5), 0.1)
+            self.calls = 0
+
+        def depth(self, c):
+            return self.D0 + self.B @ c + 0.5 * float(c @ c) * self.Q
+
+        def jacobian(self, c):
+            self.calls += 1
+            return self.depth(c), self.B + self.Q[..., None] * c[None, None, :]
+
+    kd = Lin()
+    p = LinearizedDepth(kd, threshold=0.5)
+    c0 = np.array([0.1, -0.2, 0.3])
+    p.relinearize(c0)
+    p.relinearize(c0)  # same code: no new evaluation
+    assert kd.calls == 1
+    np.testing.assert_allclose(p.depth(c0), kd.depth(np.float32(c0).astype(np.float64)), atol=1e-6)
+    dc = np.array([0.01, 0.02, -0.01])
+    err = np.abs(p.depth(c0 + dc) - kd.depth(c0 + dc)).max()
+    assert err < 0.5 * np.abs(kd.Q).max() * float(dc @ dc) + 1e-6  # second-order remainder only
+    assert kd.calls == 1
+    p.depth(c0 + np.array([1.0, 0.0, 0.0]))  # moved beyond the threshold: relinearised
+    assert kd.calls == 2
+
+
+def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):
+    out = tmp_path / "cli"
+    slam_main(  # returns on success, exits non-zero on errors
+        [
+            f"sequence={seq8}",
+            f"out={out}",
+            "dense=true",
+            f"model={default_model_dir()}",
+            "progress=false",
+            "max_frames=110",
+            "dense_settings.use_consistency=false",
+            "dense_settings.save_maps=false",
+        ]
+    )
+    text = capsys.readouterr().out
+    assert "dense_map.ply" in text and "optimised code" in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["dense_config"]["use_consistency"] is False and m["dense_mean_consis_rows"] == 0
+    assert (out / "dense_map.ply").is_file() and not (out / "keyframe_depth").exists()
+    ts, _ = read_tum(out / "trajectory.txt")
+    assert len(ts) == m["frames_with_pose"] > 0
+
+
+def test_cli_rejects_a_bad_model_and_a_bad_dense_setting(seq8, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        slam_main([f"sequence={seq8}", f"out={tmp_path}", "dense=true", f"model={tmp_path}/nope"])
+    assert e.value.code == 2 and "depth model" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        slam_main([f"sequence={seq8}", f"out={tmp_path}", "dense=true", "+dense_settings.bogus=1"])
+    assert e.value.code == 2 and "dense_settings.bogus" in capsys.readouterr().err

@@ -19,8 +19,13 @@ from pathlib import Path
 import numpy as np
 
 
-def onnx_depth_metrics(model_dir: str | Path, n_val: int = 20, seed: int = 0, data_root: str | Path | None = None,
-                       progress: bool = False) -> dict:
+def onnx_depth_metrics(
+    model_dir: str | Path,
+    n_val: int = 20,
+    seed: int = 0,
+    data_root: str | Path | None = None,
+    progress: bool = False,
+) -> dict:
     """Mean per-image metrics (RMSE, iRMSE, AbsRel, MAE, MAPE, delta1-3) and ms/frame of ``model_dir``."""
     import torch
 
@@ -33,8 +38,11 @@ def onnx_depth_metrics(model_dir: str | Path, n_val: int = 20, seed: int = 0, da
     net = DepthNetwork(model_dir)
     tf = FrameTransform(net.height, net.width, net.modality, train=False)
     with tempfile.TemporaryDirectory() as tmp:
-        root = Path(data_root) if data_root else write_nyu_dataset(Path(tmp) / "val", n_train=1, n_val=n_val,
-                                                                   seed=seed, progress=progress)
+        root = (
+            Path(data_root)
+            if data_root
+            else write_nyu_dataset(Path(tmp) / "val", n_train=1, n_val=n_val, seed=seed, progress=progress)
+        )
         files = list_nyu_h5(root, "val")[:n_val]
         acc, times = DepthMetrics(), []
         for i, f in enumerate(files):

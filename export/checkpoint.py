@@ -34,8 +34,10 @@ def find_run_config(ckpt: Path) -> Path:
         candidate = parent / ".hydra" / "config.yaml"
         if candidate.is_file():
             return candidate
-    raise FileNotFoundError(f"{ckpt}: no .hydra/config.yaml in the run directory above it (was it written by "
-                            "python train/fit.py?)")
+    raise FileNotFoundError(
+        f"{ckpt}: no .hydra/config.yaml in the run directory above it (was it written by "
+        "python train/fit.py?)"
+    )
 
 
 def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
@@ -54,19 +56,29 @@ def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
         raise ValueError(f"{cfg_path}: model.net._target_ is {target!r}, expected 'models.build_model'")
     net = models.build_model(**net_cfg)
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
-    weights = {k[len("net."):]: v for k, v in state.get("state_dict", {}).items() if k.startswith("net.")}
+    weights = {k[len("net.") :]: v for k, v in state.get("state_dict", {}).items() if k.startswith("net.")}
     if not weights:
         raise ValueError(f"{ckpt}: no 'net.*' weights in its state_dict")
     missing, unexpected = net.load_state_dict(weights, strict=False)
     if missing or unexpected:
-        raise ValueError(f"{ckpt}: weights do not match {net_cfg} (missing {missing[:5]}, unexpected "
-                         f"{unexpected[:5]})")
+        raise ValueError(
+            f"{ckpt}: weights do not match {net_cfg} (missing {missing[:5]}, unexpected {unexpected[:5]})"
+        )
     train_cfg = OmegaConf.to_container(cfg, resolve=False)
-    return LoadedCheckpoint(net.eval(), net_cfg["modality"], int(net_cfg["height"]), int(net_cfg["width"]),
-                            net_cfg, train_cfg, ckpt)
+    return LoadedCheckpoint(
+        net.eval(),
+        net_cfg["modality"],
+        int(net_cfg["height"]),
+        int(net_cfg["width"]),
+        net_cfg,
+        train_cfg,
+        ckpt,
+    )
 
 
-def validation_inputs(loaded: LoadedCheckpoint, root: str | Path, n: int, seed: int = 0) -> list[torch.Tensor]:
+def validation_inputs(
+    loaded: LoadedCheckpoint, root: str | Path, n: int, seed: int = 0
+) -> list[torch.Tensor]:
     """Up to ``n`` network inputs from NYU-layout validation frames (resize + centre crop; 125 sparse samples
     of the ground truth for the ``*s`` modalities), for the parity check on realistic data."""
     from runtime.geometry import NetworkMapping

@@ -42,10 +42,14 @@ def run(cfg: DictConfig) -> dict:
         source=str(ckpt),
     )
     p = manifest["parity"]
-    print(f"wrote {Path(cfg.out) / 'prior.onnx'}, {Path(cfg.out) / 'decoder.onnx'}, {Path(cfg.out) / 'manifest.json'}")
-    print(f"model {manifest['model']} / {manifest['modality']} {manifest['height']}x{manifest['width']}, "
-          f"code {manifest['code_dim']}; parity on {p['inputs']} inputs at batch 1 and 8: "
-          f"max |depth onnx - torch| = {p['max_abs_depth_m']:.2e} m (tolerance {p['tolerance_m']:g} m)")
+    print(
+        f"wrote {Path(cfg.out) / 'prior.onnx'}, {Path(cfg.out) / 'decoder.onnx'}, {Path(cfg.out) / 'manifest.json'}"
+    )
+    print(
+        f"model {manifest['model']} / {manifest['modality']} {manifest['height']}x{manifest['width']}, "
+        f"code {manifest['code_dim']}; parity on {p['inputs']} inputs at batch 1 and 8: "
+        f"max |depth onnx - torch| = {p['max_abs_depth_m']:.2e} m (tolerance {p['tolerance_m']:g} m)"
+    )
     return manifest
 
 

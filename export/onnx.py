@@ -57,14 +57,21 @@ class DecoderGraph(nn.Module):
 
 def git_sha() -> str | None:
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                             cwd=Path(__file__).resolve().parent)
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )
         return out.stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         return None
 
 
-def _export(module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_shapes, opset: int):
+def _export(
+    module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_shapes, opset: int
+):
     torch.onnx.export(
         module,
         args,
@@ -80,8 +87,10 @@ def _export(module: nn.Module, args: tuple, path: Path, input_names, output_name
 
 
 def _io_spec(session_io) -> list[dict]:
-    return [{"name": x.name, "shape": [d if isinstance(d, int) else str(d) for d in x.shape], "type": x.type}
-            for x in session_io]
+    return [
+        {"name": x.name, "shape": [d if isinstance(d, int) else str(d) for d in x.shape], "type": x.type}
+        for x in session_io
+    ]
 
 
 def example_inputs(in_channels: int, height: int, width: int, n: int, seed: int = 0) -> list[torch.Tensor]:
@@ -102,8 +111,14 @@ def example_inputs(in_channels: int, height: int, width: int, n: int, seed: int 
     return out
 
 
-def parity_check(net: nn.Module, prior_path: Path, decoder_path: Path, inputs: list[torch.Tensor],
-                 code_dim: int, seed: int = 0) -> dict:
+def parity_check(
+    net: nn.Module,
+    prior_path: Path,
+    decoder_path: Path,
+    inputs: list[torch.Tensor],
+    code_dim: int,
+    seed: int = 0,
+) -> dict:
     """Compare ONNX Runtime with torch on ``inputs`` at decoder batches 1 and 8; return the figures."""
     import onnxruntime as ort
 
@@ -119,7 +134,7 @@ def parity_check(net: nn.Module, prior_path: Path, decoder_path: Path, inputs: l
             unc_t, feats_t = net.prior(image)
             outs = prior.run(None, {"image": image.numpy()})
             max_unc = max(max_unc, float(np.abs(outs[0] - unc_t.numpy()).max()))
-            for a, b in zip(outs[1:], feats_t):
+            for a, b in zip(outs[1:], feats_t, strict=True):
                 max_feat = max(max_feat, float(np.abs(a - b.numpy()).max()))
             feed = {f"feat{i}": f for i, f in enumerate(outs[1:])}
             for batch in (1, 8):
@@ -137,10 +152,21 @@ def parity_check(net: nn.Module, prior_path: Path, decoder_path: Path, inputs: l
     }
 
 
-def export_network(net: nn.Module, out_dir: str | Path, *, modality: str, height: int, width: int,
-                   opset: int = 18, delta: float = DEFAULT_DELTA, n_parity: int = 4,
-                   parity_inputs: list[torch.Tensor] | None = None, train_config: dict | None = None,
-                   source: str | None = None, extra: dict | None = None) -> dict:
+def export_network(
+    net: nn.Module,
+    out_dir: str | Path,
+    *,
+    modality: str,
+    height: int,
+    width: int,
+    opset: int = 18,
+    delta: float = DEFAULT_DELTA,
+    n_parity: int = 4,
+    parity_inputs: list[torch.Tensor] | None = None,
+    train_config: dict | None = None,
+    source: str | None = None,
+    extra: dict | None = None,
+) -> dict:
     """Export ``net`` (a CVAE model with ``prior`` and ``decoder``) and write the manifest.
 
     Raises:
@@ -164,15 +190,26 @@ def export_network(net: nn.Module, out_dir: str | Path, *, modality: str, height
         _, feats = net.prior(image)
     n_feat = len(feats)
     if n_feat != DecoderGraph.N_FEATURES:
-        raise ValueError(f"the decoder takes {n_feat} features; the exporter handles {DecoderGraph.N_FEATURES}")
+        raise ValueError(
+            f"the decoder takes {n_feat} features; the exporter handles {DecoderGraph.N_FEATURES}"
+        )
     feat_names = [f"feat{i}" for i in range(n_feat)]
 
     prior_path, decoder_path = out_dir / "prior.onnx", out_dir / "decoder.onnx"
-    _export(PriorGraph(net).eval(), (image,), prior_path, ["image"], ["uncertainty", *feat_names], None, opset)
+    _export(
+        PriorGraph(net).eval(), (image,), prior_path, ["image"], ["uncertainty", *feat_names], None, opset
+    )
     batch = torch.export.Dim("batch", min=1, max=256)
     codes = torch.zeros(8, code_dim)  # traced at B = 8, the Jacobian batch
-    _export(DecoderGraph(net).eval(), (codes, *feats), decoder_path, ["code", *feat_names], ["depth"],
-            {"code": {0: batch}, **{name: None for name in feat_names}}, opset)
+    _export(
+        DecoderGraph(net).eval(),
+        (codes, *feats),
+        decoder_path,
+        ["code", *feat_names],
+        ["depth"],
+        {"code": {0: batch}, **{name: None for name in feat_names}},
+        opset,
+    )
 
     opsets = {}
     for p in (prior_path, decoder_path):
@@ -183,7 +220,9 @@ def export_network(net: nn.Module, out_dir: str | Path, *, modality: str, height
             raise RuntimeError(f"onnx.checker rejected {p}: {e}") from e
         opsets[p.name] = max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
 
-    inputs = parity_inputs if parity_inputs is not None else example_inputs(in_channels, height, width, n_parity)
+    inputs = (
+        parity_inputs if parity_inputs is not None else example_inputs(in_channels, height, width, n_parity)
+    )
     parity = parity_check(net, prior_path, decoder_path, inputs, code_dim)
     log.info("parity: max |depth_onnx - depth_torch| = %.3g m", parity["max_abs_depth_m"])
     if not parity["max_abs_depth_m"] <= PARITY_TOLERANCE_M:
@@ -208,10 +247,18 @@ def export_network(net: nn.Module, out_dir: str | Path, *, modality: str, height
         "depth_parametrization": describe.get("depth"),
         "depth_unit": "m",
         "jacobian": {"method": "forward finite differences (Eq. 17)", "delta": delta, "batch": code_dim},
-        "prior": {"file": prior_path.name, "opset": opsets[prior_path.name],
-                  "inputs": _io_spec(prior_s.get_inputs()), "outputs": _io_spec(prior_s.get_outputs())},
-        "decoder": {"file": decoder_path.name, "opset": opsets[decoder_path.name],
-                    "inputs": _io_spec(decoder_s.get_inputs()), "outputs": _io_spec(decoder_s.get_outputs())},
+        "prior": {
+            "file": prior_path.name,
+            "opset": opsets[prior_path.name],
+            "inputs": _io_spec(prior_s.get_inputs()),
+            "outputs": _io_spec(prior_s.get_outputs()),
+        },
+        "decoder": {
+            "file": decoder_path.name,
+            "opset": opsets[decoder_path.name],
+            "inputs": _io_spec(decoder_s.get_inputs()),
+            "outputs": _io_spec(decoder_s.get_outputs()),
+        },
         "parity": parity,
         "network": describe,
         "train_config": train_config,

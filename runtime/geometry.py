@@ -267,7 +267,9 @@ class Camera:
         """Distorted pixels (..., 2) and z-depth [m] (...) -> camera-frame points (..., 3)."""
         xn = self.pixel_to_normalized(uv)
         depth = np.asarray(depth, dtype=np.float64)
-        return np.concatenate([xn * depth[..., None], np.broadcast_to(depth[..., None], xn.shape[:-1] + (1,))], -1)
+        return np.concatenate(
+            [xn * depth[..., None], np.broadcast_to(depth[..., None], xn.shape[:-1] + (1,))], -1
+        )
 
     def pixel_to_normalized(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixels (..., 2) -> undistorted normalised coordinates (..., 2)."""
@@ -355,13 +357,21 @@ class NetworkMapping:
     def points_to_network(self, uv: np.ndarray) -> np.ndarray:
         uv = np.asarray(uv, dtype=np.float64)
         return np.stack(
-            [self.scale * (uv[..., 0] + 0.5) - 0.5 - self.x0, self.scale * (uv[..., 1] + 0.5) - 0.5 - self.y0], -1
+            [
+                self.scale * (uv[..., 0] + 0.5) - 0.5 - self.x0,
+                self.scale * (uv[..., 1] + 0.5) - 0.5 - self.y0,
+            ],
+            -1,
         )
 
     def points_from_network(self, uv: np.ndarray) -> np.ndarray:
         uv = np.asarray(uv, dtype=np.float64)
         return np.stack(
-            [(uv[..., 0] + 0.5 + self.x0) / self.scale - 0.5, (uv[..., 1] + 0.5 + self.y0) / self.scale - 0.5], -1
+            [
+                (uv[..., 0] + 0.5 + self.x0) / self.scale - 0.5,
+                (uv[..., 1] + 0.5 + self.y0) / self.scale - 0.5,
+            ],
+            -1,
         )
 
     def camera(self, cam: Camera) -> Camera:
@@ -383,10 +393,15 @@ class NetworkMapping:
         import cv2
 
         if image.shape[0] != self.in_h or image.shape[1] != self.in_w:
-            raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}, mapping expects {self.in_w}x{self.in_h}")
+            raise ValueError(
+                f"image is {image.shape[1]}x{image.shape[0]}, mapping expects {self.in_w}x{self.in_h}"
+            )
         # An affine warp does resize and crop in one step with exactly the pixel mapping above.
         A = np.array(
-            [[self.scale, 0.0, 0.5 * self.scale - 0.5 - self.x0], [0.0, self.scale, 0.5 * self.scale - 0.5 - self.y0]]
+            [
+                [self.scale, 0.0, 0.5 * self.scale - 0.5 - self.x0],
+                [0.0, self.scale, 0.5 * self.scale - 0.5 - self.y0],
+            ]
         )
         interp = cv2.INTER_NEAREST if nearest else (cv2.INTER_AREA if self.scale < 1 else cv2.INTER_LINEAR)
         if interp == cv2.INTER_AREA:  # warpAffine has no area filter: resize, then crop by the same mapping
@@ -395,4 +410,6 @@ class NetworkMapping:
             sx, sy = self.scale * self.in_w / rw, self.scale * self.in_h / rh  # residual scale after rounding
             A = np.array([[sx, 0.0, 0.5 * sx - 0.5 - self.x0], [0.0, sy, 0.5 * sy - 0.5 - self.y0]])
             return cv2.warpAffine(resized, A, (self.out_w, self.out_h), flags=cv2.INTER_LINEAR)
-        return cv2.warpAffine(image, A, (self.out_w, self.out_h), flags=interp, borderMode=cv2.BORDER_CONSTANT)
+        return cv2.warpAffine(
+            image, A, (self.out_w, self.out_h), flags=interp, borderMode=cv2.BORDER_CONSTANT
+        )

@@ -104,7 +104,9 @@ class DepthNetwork:
         self.in_channels = int(m["in_channels"])
         self.delta = float(m["jacobian"]["delta"])
         if MODALITY_CHANNELS.get(self.modality) != self.in_channels:
-            raise ModelError(f"{manifest_path}: modality {self.modality!r} with {self.in_channels} input channels")
+            raise ModelError(
+                f"{manifest_path}: modality {self.modality!r} with {self.in_channels} input channels"
+            )
         self.session_config = session or SessionConfig()
         self._prior = _session(self.dir / m["prior"]["file"], self.session_config)
         self._decoder = _session(self.dir / m["decoder"]["file"], self.session_config)
@@ -127,7 +129,9 @@ class DepthNetwork:
         if modality is not None and modality != self.modality:
             raise ModelError(f"{self.dir}: model is {self.modality!r}, the caller needs {modality!r}")
         if size is not None and tuple(size) != (self.height, self.width):
-            raise ModelError(f"{self.dir}: model is {self.height}x{self.width}, the caller needs {size[0]}x{size[1]}")
+            raise ModelError(
+                f"{self.dir}: model is {self.height}x{self.width}, the caller needs {size[0]}x{size[1]}"
+            )
 
     # ------------------------------------------------------------------ inputs
     def make_input(self, image: np.ndarray, sparse: np.ndarray | None = None) -> np.ndarray:
@@ -147,14 +151,18 @@ class DepthNetwork:
         if want_rgb and not (img.ndim == 3 and img.shape[2] == 3):
             raise ModelError(f"model {self.modality!r} needs an RGB image (H, W, 3), got shape {img.shape}")
         if img.shape[:2] != (self.height, self.width):
-            raise ModelError(f"image is {img.shape[1]}x{img.shape[0]}, the model takes {self.width}x{self.height}")
+            raise ModelError(
+                f"image is {img.shape[1]}x{img.shape[0]}, the model takes {self.width}x{self.height}"
+            )
         chans = [img.transpose(2, 0, 1)] if img.ndim == 3 else [img[None]]
         if self.uses_sparse:
             if sparse is None:
                 raise ModelError(f"model {self.modality!r} needs a sparse depth image")
             sp = np.asarray(sparse, np.float32)
             if sp.shape != (self.height, self.width):
-                raise ModelError(f"sparse depth has shape {sp.shape}, the model takes {(self.height, self.width)}")
+                raise ModelError(
+                    f"sparse depth has shape {sp.shape}, the model takes {(self.height, self.width)}"
+                )
             if not np.isfinite(sp).all():
                 raise ModelError("sparse depth has non-finite values")
             chans.append(sp[None])
@@ -163,10 +171,12 @@ class DepthNetwork:
         return np.ascontiguousarray(np.concatenate(chans, 0)[None])
 
     # ------------------------------------------------------------------ graphs
-    def prior(self, image: np.ndarray, sparse: np.ndarray | None = None, cache_size: int = 4) -> KeyframeDepth:
+    def prior(
+        self, image: np.ndarray, sparse: np.ndarray | None = None, cache_size: int = 4
+    ) -> KeyframeDepth:
         """Run ``prior.onnx`` once for a keyframe; the result decodes codes and caches them."""
         outs = self._prior.run(None, {"image": self.make_input(image, sparse)})
-        feed = dict(zip(self.feature_names, outs[1:]))
+        feed = dict(zip(self.feature_names, outs[1:], strict=True))
         return KeyframeDepth(self, outs[0][0, 0], feed, cache_size=cache_size)
 
     def decode(self, codes: np.ndarray, features: dict[str, np.ndarray]) -> np.ndarray:

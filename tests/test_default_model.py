@@ -28,8 +28,10 @@ def test_shipped_model_loads_and_matches_its_manifest():
     assert m["jacobian"]["delta"] == 0.01
     # the code matters: decoding two codes gives different depth
     rng = np.random.default_rng(0)
-    kf = net.prior(rng.random((net.height, net.width)).astype(np.float32),
-                   np.where(rng.random((net.height, net.width)) < 0.01, 3.0, 0.0).astype(np.float32))
+    kf = net.prior(
+        rng.random((net.height, net.width)).astype(np.float32),
+        np.where(rng.random((net.height, net.width)) < 0.01, 3.0, 0.0).astype(np.float32),
+    )
     assert np.all(kf.uncertainty > 0)
     d0, J = kf.jacobian(np.zeros(8, np.float32))
     assert np.all((d0 > 0.05) & (d0 < 25.0))
@@ -37,7 +39,9 @@ def test_shipped_model_loads_and_matches_its_manifest():
 
 
 def _eval_script():
-    spec = importlib.util.spec_from_file_location("_eval_onnx_depth", ROOT / "benchmarks" / "eval_onnx_depth.py")
+    spec = importlib.util.spec_from_file_location(
+        "_eval_onnx_depth", ROOT / "benchmarks" / "eval_onnx_depth.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

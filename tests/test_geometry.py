@@ -66,8 +66,9 @@ def test_quaternion_orders_known_answer():
     np.testing.assert_allclose(g.R_to_quat_xyzw(R), [0, 0, c, c], atol=1e-12)
     # agrees with gtsam's quaternion (w, x, y, z)
     q = gtsam.Rot3(EUROC_T_BS[:3, :3]).toQuaternion()
-    np.testing.assert_allclose(np.abs(g.R_to_quat_wxyz(EUROC_T_BS[:3, :3])), np.abs([q.w(), q.x(), q.y(), q.z()]),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        np.abs(g.R_to_quat_wxyz(EUROC_T_BS[:3, :3])), np.abs([q.w(), q.x(), q.y(), q.z()]), atol=1e-6
+    )
 
 
 def test_quaternion_round_trip_batch_and_sign():
@@ -98,7 +99,9 @@ def test_camera_projection_known_answer_and_round_trip():
     assert valid.tolist() == [True, False]
     # distorted camera: unproject(project(p)) == p
     rng = np.random.default_rng(6)
-    p = np.column_stack([rng.uniform(-1.0, 1.0, 200), rng.uniform(-0.6, 0.6, 200), rng.uniform(1.0, 5.0, 200)])
+    p = np.column_stack(
+        [rng.uniform(-1.0, 1.0, 200), rng.uniform(-0.6, 0.6, 200), rng.uniform(1.0, 5.0, 200)]
+    )
     uv, _ = EUROC_CAM.project(p)
     assert EUROC_CAM.in_image(uv).all()
     np.testing.assert_allclose(EUROC_CAM.unproject(uv, p[:, 2]), p, atol=1e-8)
@@ -113,7 +116,9 @@ def test_distortion_matches_opencv():
     np.testing.assert_allclose(uv, uv_cv[:, 0], atol=1e-6)
     # OpenCV's default 5 iterations stop short near the corners; ask it to converge
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), EUROC_CAM.K, dist, R=None, P=EUROC_CAM.K, criteria=crit)[:, 0]
+    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), EUROC_CAM.K, dist, R=None, P=EUROC_CAM.K, criteria=crit)[
+        :, 0
+    ]
     np.testing.assert_allclose(EUROC_CAM.undistort_points(uv), und, atol=1e-4)
 
 
@@ -125,7 +130,7 @@ def test_undistort_image_moves_pixels_to_pinhole_positions():
     assert np.linalg.norm(uv_d - uv_p) > 5.0
     img = np.zeros((cam.height, cam.width), np.uint8)
     r, c = np.round(uv_d[1]).astype(int), np.round(uv_d[0]).astype(int)
-    img[r - 2:r + 3, c - 2:c + 3] = 255
+    img[r - 2 : r + 3, c - 2 : c + 3] = 255
     und = cam.undistort_image(img)
     vv, uu = np.nonzero(und > 128)
     assert np.hypot(uu.mean() - uv_p[0], vv.mean() - uv_p[1]) < 1.0

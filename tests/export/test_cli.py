@@ -23,17 +23,34 @@ def test_fit_then_export_then_runtime(tmp_path):
     data = write_fake_nyu(tmp_path / "nyu")
     run = tmp_path / "run"
     fit = [
-        sys.executable, "train/fit.py", "data=nyu_h5", f"data.root={data}", "data.height=64", "data.width=96",
-        "data.batch_size=2", "model.net.width_mult=0.25", "trainer.max_steps=2", "trainer.limit_val_batches=1",
-        "trainer.val_check_interval=2", "trainer.enable_progress_bar=false", "logger.tensorboard=null",
-        "num_threads=1", f"hydra.run.dir={run}",
+        sys.executable,
+        "train/fit.py",
+        "data=nyu_h5",
+        f"data.root={data}",
+        "data.height=64",
+        "data.width=96",
+        "data.batch_size=2",
+        "model.net.width_mult=0.25",
+        "trainer.max_steps=2",
+        "trainer.limit_val_batches=1",
+        "trainer.val_check_interval=2",
+        "trainer.enable_progress_bar=false",
+        "logger.tensorboard=null",
+        "num_threads=1",
+        f"hydra.run.dir={run}",
     ]
     p = subprocess.run(fit, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
     ckpt = run / "checkpoints" / "last.ckpt"
     out = tmp_path / "model"
-    p = subprocess.run([sys.executable, "-c", "from export.cli import main; main()", f"ckpt={ckpt}", f"out={out}"],
-                       cwd=REPO, env=_env(), capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        [sys.executable, "-c", "from export.cli import main; main()", f"ckpt={ckpt}", f"out={out}"],
+        cwd=REPO,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     assert "max |depth onnx - torch|" in p.stdout
     manifest = json.loads((out / "manifest.json").read_text())
@@ -45,7 +62,18 @@ def test_fit_then_export_then_runtime(tmp_path):
 
 
 def test_export_cli_names_a_missing_checkpoint(tmp_path):
-    p = subprocess.run([sys.executable, "-c", "from export.cli import main; main()",
-                        f"ckpt={tmp_path / 'none.ckpt'}", f"out={tmp_path / 'm'}"],
-                       cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from export.cli import main; main()",
+            f"ckpt={tmp_path / 'none.ckpt'}",
+            f"out={tmp_path / 'm'}",
+        ],
+        cwd=REPO,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert p.returncode != 0 and "none.ckpt" in p.stderr and "not found" in p.stderr

@@ -55,9 +55,19 @@ def test_manifest_records_sizes_io_and_parity(exported):
     _, out, manifest = exported
     on_disk = json.loads((out / "manifest.json").read_text())
     assert on_disk == json.loads(json.dumps(manifest))
-    assert (on_disk["modality"], on_disk["in_channels"], on_disk["height"], on_disk["width"]) == ("grays", 2, H, W)
+    assert (on_disk["modality"], on_disk["in_channels"], on_disk["height"], on_disk["width"]) == (
+        "grays",
+        2,
+        H,
+        W,
+    )
     assert on_disk["code_dim"] == 8 and on_disk["jacobian"]["delta"] == 0.01
-    assert on_disk["prior"]["inputs"][0]["name"] == "image" and on_disk["prior"]["inputs"][0]["shape"] == [1, 2, H, W]
+    assert on_disk["prior"]["inputs"][0]["name"] == "image" and on_disk["prior"]["inputs"][0]["shape"] == [
+        1,
+        2,
+        H,
+        W,
+    ]
     names = [x["name"] for x in on_disk["decoder"]["inputs"]]
     assert names[0] == "code" and names[1:] == [x["name"] for x in on_disk["prior"]["outputs"][1:]]
     assert isinstance(on_disk["decoder"]["inputs"][0]["shape"][0], str)  # symbolic batch
@@ -103,8 +113,9 @@ def test_fd_jacobian_matches_autograd(exported):
     x = torch.from_numpy(dn.make_input(img, sparse))
     with torch.no_grad():
         _, feats = net.prior(x)
-    J_ad = torch.autograd.functional.jacobian(lambda c: net.decoder(c[None], *feats)[0, 0],
-                                              torch.from_numpy(code), vectorize=True).numpy()
+    J_ad = torch.autograd.functional.jacobian(
+        lambda c: net.decoder(c[None], *feats)[0, 0], torch.from_numpy(code), vectorize=True
+    ).numpy()
     scale = np.abs(J_ad).mean()
     assert scale > 1e-2
     err = np.abs(J - J_ad).mean()

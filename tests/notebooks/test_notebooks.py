@@ -1,0 +1,169 @@
+"""The notebooks: sources in sync with notebooks/src, committed outputs present, and tiny end-to-end runs.
+
+The end-to-end tests execute every cell of each notebook with nbclient (kernel ``python3`` of this venv) with
+tiny sizes injected after the ``parameters`` cell, outputs and caches in ``tmp_path``, one torch thread.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import nbformat
+import pytest
+
+from tests.notebooks.run import REPO, execute_notebook, inject_parameters
+
+NB = REPO / "notebooks"
+
+
+def _build_module():
+    spec = importlib.util.spec_from_file_location("notebooks_build", NB / "build.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _outputs(nb) -> list[dict]:
+    return [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+
+
+def _errors(nb) -> list[str]:
+    return [f"{o.get('ename')}: {o.get('evalue')}" for o in _outputs(nb) if o.output_type == "error"]
+
+
+def _env(tmp_path: Path) -> dict:
+    return {"DIT_SLAM_CACHE": str(tmp_path / "cache"), "OMP_NUM_THREADS": "1"}
+
+
+# ------------------------------------------------------------------------------------------------ static
+def test_parse_cells_known_answer():
+    build = _build_module()
+    text = '# %% [markdown]\n# # Title\n#\n# text\n\n# %% tags=["parameters"]\nA = 1\n\n# %%\nprint(A)\n'
+    cells = build.parse_cells(text)
+    assert cells == [
+        {"type": "markdown", "source": "# Title\n\ntext", "tags": []},
+        {"type": "code", "source": "A = 1", "tags": ["parameters"]},
+        {"type": "code", "source": "print(A)", "tags": []},
+    ]
+    with pytest.raises(ValueError, match="before the first"):
+        build.parse_cells("x = 1\n# %%\n")
+    with pytest.raises(ValueError, match="unknown cell header"):
+        build.parse_cells("# %% foo\n")
+
+
+@pytest.mark.parametrize("name", ["01_depth_modalities", "02_code_jacobian"])
+def test_committed_notebook_matches_source_and_has_outputs(name):
+    build = _build_module()
+    committed = nbformat.read(NB / f"{name}.ipynb", as_version=4)
+    assert build.same_cells(build.build(NB / "src" / f"{name}.py"), committed) == [], (
+        f"run python notebooks/build.py and re-execute {name}.ipynb"
+    )
+    tagged = [c for c in committed.cells if "parameters" in c.metadata.get("tags", [])]
+    assert len(tagged) == 1 and committed.cells.index(tagged[0]) == 1  # one parameter cell, at the top
+    code = [c for c in committed.cells if c.cell_type == "code"]
+    # the committed copy carries a full run: every code cell executed in order, no errors, figures embedded
+    assert [c.execution_count for c in code] == list(range(1, len(code) + 1))
+    assert _errors(committed) == []
+    assert sum("image/png" in o.get("data", {}) for o in _outputs(committed)) >= 2
+    assert not any("injected-parameters" in c.metadata.get("tags", []) for c in committed.cells)
+
+
+def test_inject_parameters():
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [
+        nbformat.v4.new_markdown_cell("# t"),
+        nbformat.v4.new_code_cell("A = 1\nB: int = 2"),
+        nbformat.v4.new_code_cell("print(A)"),
+    ]
+    nb.cells[1].metadata["tags"] = ["parameters"]
+    inject_parameters(nb, {"A": 5, "B": "x"})
+    assert [c.source for c in nb.cells][2] == "# Parameters injected by tests.notebooks.run\nA = 5\nB = 'x'"
+    assert nb.cells[2].metadata["tags"] == ["injected-parameters"] and len(nb.cells) == 4
+    inject_parameters(nb, {"A": 6})  # replaces the earlier injection
+    assert len(nb.cells) == 4 and nb.cells[2].source.endswith("A = 6")
+    with pytest.raises(ValueError, match=r"\['TYPO'\]"):
+        inject_parameters(nb, {"TYPO": 1})
+    nb.cells[1].metadata["tags"] = []
+    with pytest.raises(ValueError, match="exactly one cell tagged 'parameters'"):
+        inject_parameters(nb, {})
+
+
+# ------------------------------------------------------------------------------------------------ end to end
+@pytest.mark.slow
+def test_01_depth_modalities_tiny(tmp_path):
+    out = tmp_path / "out"
+    params = {
+        "OUT": str(out),
+        "VARIANTS": ["dit"],
+        "MODALITIES": ["rgb", "grays"],
+        "SIZE": 32,
+        "WIDTH_MULT": 0.25,
+        "STEPS": 2,
+        "BATCH": 2,
+        "VAL_EVERY": 1,
+        "N_TRAIN": 8,
+        "N_VAL": 4,
+        "THREADS": 1,
+        "TIMING_FRAMES": 1,
+        "FIG_FRAMES": 2,
+    }
+    nb = execute_notebook(
+        NB / "01_depth_modalities.ipynb", params, tmp_path / "01.ipynb", timeout=300, env=_env(tmp_path)
+    )
+    assert _errors(nb) == []
+    summary = json.loads((out / "ablation" / "ablation.json").read_text())
+    assert set(summary["cells"]) == {"dit_rgb", "dit_grays"}
+    assert all(c["frames"] == 4 and c["net_config"]["height"] == 32 for c in summary["cells"].values())
+    rows = [ln.split(" | ")[0] for ln in summary["table"].splitlines()[2:]]
+    assert rows == [
+        "| RGB / Ours (DiT)",
+        "| RGB / median GT (reference)",
+        "| G-S / Ours (DiT)",
+        "| G-S / median GT (reference)",
+    ]
+    for png in ("table1_bars.png", "fig7_dit_rgb.png", "fig8_dit_grays.png"):
+        assert (out / png).stat().st_size > 1000, png
+    shown = [o for o in _outputs(nb) if "image/png" in o.get("data", {})]
+    assert len(shown) >= 3  # the figures are displayed inline, not only saved
+    if (REPO / "runtime" / "assets" / "default_model" / "manifest.json").is_file():
+        res = json.loads((out / "default_model_eval.json").read_text())
+        assert res["frames"] == 4 and 0 < res["metrics"]["rmse"] < 5
+        assert (out / "fig8_default_model.png").is_file()
+
+
+@pytest.mark.slow
+def test_02_code_jacobian_tiny(tmp_path):
+    out = tmp_path / "out"
+    params = {
+        "OUT": str(out),
+        "MODEL": "standin",
+        "STANDIN_SIZE": 64,
+        "STANDIN_WIDTH_MULT": 0.25,
+        "FRAMES": 1,
+        "RANDOM_CODES": 0,
+        "DELTA_MIN": 1e-3,
+        "DELTA_MAX": 1e-1,
+        "PER_DECADE": 1,
+        "THREADS": 1,
+        "RUNS": 1,
+        "TORCH_RUNS": 1,
+        "SESSION_SWEEP": False,
+        "EXACT": False,
+    }
+    nb = execute_notebook(NB / "02_code_jacobian.ipynb", params, tmp_path / "02.ipynb", timeout=300, env=_env(tmp_path))
+    assert _errors(nb) == []
+    jac = json.loads((out / "jacobian.json").read_text())
+    assert jac["model"]["source"] == "stand-in" and jac["model"]["height"] == 64
+    assert jac["deltas"] == pytest.approx([1e-3, 1e-2, 1e-1])
+    assert jac["best"]["all_dims"]["delta"] in jac["deltas"]
+    # forward differences: the error at delta = 0.1 exceeds the one at 1e-3 (truncation dominates there)
+    err = jac["sweep_all_dims"]["mean_abs"]
+    assert err[2] > err[0] > 0
+    net = json.loads((out / "network.json").read_text())
+    assert net["ratios_to_ort_fd"]["ort_fd"] == 1.0
+    assert net["comparison"]["accuracy"]["torch_jacfwd"] < 1e-4  # jacfwd == autograd forward mode
+    for png in ("jacobian_delta.png", "jacobian_timing.png"):
+        assert (out / png).stat().st_size > 1000, png
+    assert sum("image/png" in o.get("data", {}) for o in _outputs(nb)) >= 2

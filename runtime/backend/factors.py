@@ -289,4 +289,5 @@ def analytic_jacobians(factor, values) -> list[np.ndarray]:
         d = zero.at(key).shape[0]
         out.append(A[:, c : c + d])
         c += d
+    assert c == A.shape[1], "Jacobian columns do not add up to the keys' dimensions"
     return out

@@ -16,7 +16,7 @@ from runtime.backend.depth_factors import (
     make_consistency_factor,
     make_geometric_depth_factors,
 )
-from runtime.backend.factors import custom_factor
+from runtime.backend.factors import analytic_jacobians, custom_factor, numerical_jacobians
 from runtime.geometry import inv_T, to_pose3
 from runtime.sampling import sample_consistency_pixels
 from tests.dense.fakes import (
@@ -36,45 +36,8 @@ NO_ROBUST = DepthFactorConfig(geo_huber_k=None, consis_huber_k=None)
 
 
 # --------------------------------------------------------------------------- helpers
-def numeric_jacobians(factor, values, eps=1e-6):
-    """Central differences of ``unwhitenedError`` along each key's tangent (``Values.retract``), key order."""
-    keys = list(values.keys())
-    zero = values.zeroVectors()
-    dims = {k: zero.at(k).shape[0] for k in keys}
-    out = []
-    for key in factor.keys():
-        cols = []
-        for i in range(dims[key]):
-            e = []
-            for s in (1.0, -1.0):
-                vv = gtsam.VectorValues()
-                for k in keys:
-                    d = np.zeros(dims[k])
-                    if k == key:
-                        d[i] = s * eps
-                    vv.insert(k, d)
-                e.append(np.asarray(factor.unwhitenedError(values.retract(vv))))
-            cols.append((e[0] - e[1]) / (2 * eps))
-        out.append(np.stack(cols, 1))
-    return out
-
-
-def analytic_jacobians(factor, values):
-    """The unwhitened Jacobian blocks GTSAM linearises with (factor without a robust kernel), key order."""
-    A, _ = factor.linearize(values).jacobian()
-    A = A * np.asarray(factor.noiseModel().sigmas())[:, None]
-    zero = values.zeroVectors()
-    out, c = [], 0
-    for key in factor.keys():
-        d = zero.at(key).shape[0]
-        out.append(A[:, c : c + d])
-        c += d
-    assert c == A.shape[1], "Jacobian columns do not add up to the keys' dimensions"
-    return out
-
-
 def assert_jacobians_match(factor, values, rtol=1e-5, atol=1e-7):
-    num = numeric_jacobians(factor, values)
+    num = numerical_jacobians(factor, values)
     ana = analytic_jacobians(factor, values)
     assert len(num) == len(ana) == factor.size()
     for key, a, n in zip(factor.keys(), ana, num, strict=True):

@@ -86,14 +86,25 @@ class DenseConfig:
             the code the factors were built at (norm, code units); 0: exact (the network runs at every new
             code).
         measure_approx_error: decode the final codes once more to measure the approximation's error.
+        geo_eff_rows, consis_eff_rows: effective independent rows of one keyframe's Eq. 13 rows and of one
+            pair's Eq. 14 rows (:class:`runtime.backend.depth_factors.DepthFactorConfig`; None: independent).
+        fill_recent: when fewer than ``n_code_keyframes`` keyframes are co-visible with the newest (visual
+            tracking lost on a textureless stretch), fill the code keyframes with the most recent ones.
+        depth_source: ``"network"``, or ``"ground_truth"``: a diagnostic upper bound (needs ``mav0/depth0``),
+            where a keyframe's depth is the rendered depth plus the network's code-dependent part,
+            ``D(c) = D_gt + D_net(c) - D_net(0)`` (so the codes and the code Jacobian are the network's), with
+            the uncertainty ``oracle_b`` everywhere; it tells what a perfect depth network would buy.
+        oracle_b: Laplace scale ``B`` [m] of the ground-truth depth source.
         geo_fixed_landmarks: Eq. 13 with the landmarks held at their current estimates (keys ``X(k), C(k)``,
             the "fixed sparse map points" variant); False: the landmarks are variables too.
         sigma_per_b: row sigma per unit of the predicted Laplace scale ``B``. The Laplace value is
-            ``sqrt(2)``; the default inflates it 4x because the shipped model's uncertainty is over-confident
-            on the synthetic sequences: with ``sqrt(2)`` the depth residuals pulled the map (whitewall seed 0,
-            30 s: ATE 0.48 m, Sim3 scale off; 4x: 0.14 m; sparse 0.05 m), on textured 4x keeps the sparse
-            ATE (0.0025 m vs 0.0035 m with ``sqrt(2)``) at a smaller depth gain (RMSE 0.241 -> 0.195 m vs
-            0.249 -> 0.179 m).
+            ``sqrt(2)``; the default is 8x that. Measured on the 60 s sequences (frames every 2 s, c = 0 and
+            a code fitted to 150 true sparse depths), the shipped model's ``B`` is calibrated on average
+            (mean |error| / mean ``B``: 0.7-0.8 textured, 1.0-1.3 whitewall), but a depth map's errors are
+            one smooth field, so hundreds of rows on a map are worth a handful of independent ones; treated
+            as independent they pull the trajectory. ATE, 60 s, seed 0 whitewall / mean of seeds 0-2
+            textured: 4x ``sqrt(2)`` 0.118 m / 0.0056 m, 8x 0.037 m / 0.0043 m (sparse 0.028 m / 0.0043 m).
+            ``geo_eff_rows`` / ``consis_eff_rows`` scale by the row count instead.
         min_sigma, geo_huber_k, consis_huber_k, chunk_size: depth factor settings
             (:class:`runtime.backend.depth_factors.DepthFactorConfig`).
         max_rel_uncertainty, voxel, max_depth: dense map filter (:class:`runtime.dense_map.DenseMapConfig`).
@@ -109,11 +120,16 @@ class DenseConfig:
     relin_threshold: float = 1.0e6
     build_relin_threshold: float = 0.0
     measure_approx_error: bool = False
-    sigma_per_b: float = float(4.0 * np.sqrt(2.0))
+    sigma_per_b: float = float(8.0 * np.sqrt(2.0))
     min_sigma: float = 0.02
     geo_huber_k: float = 1.5
     consis_huber_k: float = 1.5
     chunk_size: int = 32
+    geo_eff_rows: float | None = None
+    consis_eff_rows: float | None = None
+    fill_recent: bool = False
+    depth_source: str = "network"
+    oracle_b: float = 0.02
     geo_fixed_landmarks: bool = False
     max_rel_uncertainty: float = 0.1
     voxel: float = 0.02
@@ -130,6 +146,10 @@ class DenseConfig:
             raise ValueError(f"relin_threshold={self.relin_threshold}: must be >= 0")
         if not self.code_prior_sigma > 0:
             raise ValueError(f"code_prior_sigma={self.code_prior_sigma}: must be > 0")
+        if self.depth_source not in ("network", "ground_truth"):
+            raise ValueError(f"depth_source={self.depth_source!r}: expected 'network' or 'ground_truth'")
+        if not self.oracle_b > 0:
+            raise ValueError(f"oracle_b={self.oracle_b}: must be > 0")
 
     @classmethod
     def from_dict(cls, d: dict | None) -> DenseConfig:
@@ -146,6 +166,8 @@ class DenseConfig:
             consis_huber_k=self.consis_huber_k,
             chunk_size=self.chunk_size,
             check_shapes=False,
+            geo_eff_rows=self.geo_eff_rows,
+            consis_eff_rows=self.consis_eff_rows,
         )
 
 
@@ -205,6 +227,31 @@ class LinearizedDepth:
         return self.kd.depth(code)
 
 
+class GroundTruthDepth:
+    """A keyframe's depth with the rendered ground truth in place of the prior (``depth_source="ground_truth"``).
+
+    ``D(c) = D_gt + D_net(c) - D_net(0)`` where ``D_gt`` is valid (the network's depth elsewhere), the network's
+    code Jacobian, uncertainty ``b`` everywhere. Same interface as :class:`runtime.network.KeyframeDepth`.
+    """
+
+    def __init__(self, kd, gt_net: np.ndarray, b: float) -> None:
+        self.kd = kd
+        self.net = kd.net
+        d0 = np.asarray(kd.depth(np.zeros(kd.net.code_dim)), np.float64)
+        gt = np.asarray(gt_net, np.float64)
+        if gt.shape != d0.shape:
+            raise ValueError(f"ground-truth depth {gt.shape} does not match the network's {d0.shape}")
+        self.offset = np.where(gt > 0, gt - d0, 0.0)
+        self.uncertainty = np.full(np.shape(kd.uncertainty), b, np.float32)
+
+    def depth(self, code: np.ndarray) -> np.ndarray:
+        return np.asarray(self.kd.depth(code), np.float64) + self.offset
+
+    def jacobian(self, code: np.ndarray, delta: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        d, J = self.kd.jacobian(code) if delta is None else self.kd.jacobian(code, delta)
+        return np.asarray(d, np.float64) + self.offset, J
+
+
 @dataclass
 class _KfDense:
     kf_id: int
@@ -259,6 +306,8 @@ class DenseMapper:
         self.K_net = self.net_cam.intrinsics
         self.fcfg = self.cfg.factor_config()
         self.depth_gt = depth_gt
+        if self.cfg.depth_source == "ground_truth" and depth_gt is None:
+            raise ValueError("depth_source='ground_truth' needs a sequence with ground-truth depth (mav0/depth0)")
         self.timers = timers if timers is not None else defaultdict(float)
         self.kfs: dict[int, _KfDense] = {}
         self.code_kfs: list[int] = []
@@ -266,9 +315,7 @@ class DenseMapper:
         self.stats = _Stats()
 
     # ------------------------------------------------------------------ keyframes
-    def on_keyframe(
-        self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray
-    ) -> None:
+    def on_keyframe(self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray) -> None:
         """Run the network prior for a new keyframe.
 
         Args:
@@ -285,10 +332,13 @@ class DenseMapper:
         sparse = None
         if self.net.uses_sparse:
             uv, z = self._observed_points(backend, kf_id)
-            sparse = sparse_depth_image(
-                self.mapping.points_to_network(uv), z, (self.net.height, self.net.width)
-            )
+            sparse = sparse_depth_image(self.mapping.points_to_network(uv), z, (self.net.height, self.net.width))
         kd = self.net.prior(img_net, sparse)
+        if self.cfg.depth_source == "ground_truth":
+            gt = self.depth_gt(frame_idx) if self.depth_gt is not None else None
+            if gt is None:
+                raise ValueError(f"depth_source='ground_truth' but frame {frame_idx} has no ground-truth depth")
+            kd = GroundTruthDepth(kd, gt_depth_to_network(gt, self.camera, self.mapping), self.cfg.oracle_b)
         C = self.net.code_dim
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
         self.kfs[kf_id] = _KfDense(
@@ -301,9 +351,7 @@ class DenseMapper:
         with their current positions."""
         kf = backend.keyframes[kf_id]
         ids = [
-            j
-            for j in backend.kf_obs.get(kf_id, ())
-            if j in backend.landmarks and len(backend.landmarks[j].obs) >= 2
+            j for j in backend.kf_obs.get(kf_id, ()) if j in backend.landmarks and len(backend.landmarks[j].obs) >= 2
         ]
         if not ids:
             return np.zeros((0, 2)), np.zeros(0)
@@ -322,6 +370,14 @@ class DenseMapper:
         newest = backend.active[-1]
         cand = [newest] + backend.covisible_keyframes(newest, len(backend.active))
         out = [k for k in cand if k in self.kfs][: self.cfg.n_code_keyframes]
+        if self.cfg.fill_recent and len(out) < self.cfg.n_code_keyframes:
+            # too few co-visible keyframes (textureless stretch, visual tracking lost): the most recent ones
+            # overlap the newest by motion continuity
+            for k in reversed(backend.active):
+                if len(out) >= self.cfg.n_code_keyframes:
+                    break
+                if k in self.kfs and k not in out:
+                    out.append(k)
         return out
 
     def add_factors(self, backend, graph, values) -> None:
@@ -354,9 +410,7 @@ class DenseMapper:
                         where = {"landmarks_w": np.array([backend.landmarks[j].X_w for j in ids])}
                     else:
                         where = {"landmark_keys": [L(j) for j in ids]}
-                    facs = make_geometric_depth_factors(
-                        X(k), C(k), uvn, d.provider, self.T_b_c, cfg=self.fcfg, **where
-                    )
+                    facs = make_geometric_depth_factors(X(k), C(k), uvn, d.provider, self.T_b_c, cfg=self.fcfg, **where)
                     for f in facs:
                         graph.push_back(f)
                         n_geo += f.dim()

@@ -188,6 +188,7 @@ class SlamSystem:
         self._gtsam = gtsam
         self.timers: dict[str, float] = defaultdict(float)
         self.events: list[tuple[float, str]] = []
+        self.relocalisations: list[dict] = []  # per relocalisation: when, how long lost, drift corrected
         self.records: list[FrameRecord] = []
         self.n_frames = 0
         self.n_map_matches = 0
@@ -613,6 +614,15 @@ class SlamSystem:
         self.backend.reactivate_landmarks(
             m_ids, X_c[ti][inl], kf.kf_id, feats.uv_u[fi][inl], c.map_point_sigma
         )
+        self.relocalisations.append(
+            {
+                "t_s": round(kf.ts * NS, 4),
+                "lost_s": round((pend["regained"] - pend["since"]) * NS, 3),
+                "drift_m": shift,
+                "yaw_deg": float(np.degrees(yaw)),
+                "inliers": n_in,
+            }
+        )
         self.event(
             kf.ts,
             f"relocalised against {n_in} map points ({qi.size} matches) after "
@@ -844,6 +854,7 @@ def run_sequence(
         "initialised_at_s": (float(ts[0] * NS) if len(ts) else None),
         "events": system.events[:200],
         "n_events": len(system.events),
+        "relocalisations": system.relocalisations,
         "config": _jsonable(asdict(cfg)),
     }
     if mapper is not None:

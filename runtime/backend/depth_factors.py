@@ -109,6 +109,12 @@ class DepthFactorConfig:
             (``dz/dd2`` only).
         chunk_size: landmarks per geometric factor when the landmarks are variables (0: one factor per
             keyframe).
+        geo_eff_rows, consis_eff_rows: effective number of independent rows of one keyframe's Eq. 13 rows and
+            of one pair's Eq. 14 rows (None: every row independent). A depth map's error is a smooth field
+            (the decoder spans it with a few code directions), so hundreds of rows on one map are not
+            hundreds of independent measurements; with ``n`` rows the sigmas are scaled by
+            ``sqrt(max(n / eff_rows, 1))`` (:func:`correlation_inflation`), which gives the rows together the
+            information of ``eff_rows`` independent ones.
         min_depth: smallest depth [m] in ``k1`` for a consistency sample to count.
         check_shapes: assert every Jacobian's shape at each linearisation (cheap; GTSAM accepts wrong shapes).
     """
@@ -121,6 +127,8 @@ class DepthFactorConfig:
     chunk_size: int = 32
     min_depth: float = 0.05
     check_shapes: bool = True
+    geo_eff_rows: float | None = None
+    consis_eff_rows: float | None = None
 
     def __post_init__(self) -> None:
         if not self.sigma_per_b > 0:
@@ -131,6 +139,10 @@ class DepthFactorConfig:
             raise ValueError(f"consis_covariance={self.consis_covariance!r}: expected 'full' or 'z'")
         if self.chunk_size < 0:
             raise ValueError(f"chunk_size={self.chunk_size}: must be >= 0")
+        for name in ("geo_eff_rows", "consis_eff_rows"):
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"{name}={v}: must be > 0 (or None)")
 
 
 # --------------------------------------------------------------------------- bilinear lookup
@@ -207,6 +219,14 @@ def depth_sigma(uncertainty_at: np.ndarray, cfg: DepthFactorConfig) -> np.ndarra
     b = np.asarray(uncertainty_at, dtype=np.float64)
     b = np.where(np.isfinite(b), b, np.inf)
     return np.maximum(cfg.sigma_per_b * b, cfg.min_sigma)
+
+
+def correlation_inflation(n_rows: int, eff_rows: float | None) -> float:
+    """Sigma factor ``sqrt(max(n_rows / eff_rows, 1))`` that gives ``n_rows`` correlated rows the information
+    of ``eff_rows`` independent ones (1 when ``eff_rows`` is None)."""
+    if eff_rows is None:
+        return 1.0
+    return float(np.sqrt(max(n_rows / float(eff_rows), 1.0)))
 
 
 def _noise(sigmas: np.ndarray, huber_k: float | None):
@@ -320,11 +340,9 @@ def make_geometric_depth_factors(
         return []
     uv = uv[keep]
     lookup_all = Bilinear(uv, shape)
-    sig_all = depth_sigma(lookup_all.sample(B), cfg)
+    sig_all = depth_sigma(lookup_all.sample(B), cfg) * correlation_inflation(uv.shape[0], cfg.geo_eff_rows)
     if landmarks_w is not None:
-        return [
-            _geometric_factor(pose_key, code_key, None, Xf[keep], lookup_all, sig_all, provider, T_b_c, cfg)
-        ]
+        return [_geometric_factor(pose_key, code_key, None, Xf[keep], lookup_all, sig_all, provider, T_b_c, cfg)]
     lkeys = lkeys[keep]
     n = lkeys.size
     step = n if cfg.chunk_size == 0 else cfg.chunk_size
@@ -332,9 +350,7 @@ def make_geometric_depth_factors(
     for s in range(0, n, step):  # one factor per chunk (not per point)
         sl = slice(s, min(s + step, n))
         lk = Bilinear(uv[sl], shape)
-        out.append(
-            _geometric_factor(pose_key, code_key, lkeys[sl], None, lk, sig_all[sl], provider, T_b_c, cfg)
-        )
+        out.append(_geometric_factor(pose_key, code_key, lkeys[sl], None, lk, sig_all[sl], provider, T_b_c, cfg))
     return out
 
 
@@ -366,9 +382,7 @@ def _code_dim(provider: DepthProvider) -> int:
     if dim is None:
         dim = getattr(provider, "code_dim", None)
     if dim is None:
-        raise ValueError(
-            "provider must expose its code dimension (provider.net.code_dim or provider.code_dim)"
-        )
+        raise ValueError("provider must expose its code dimension (provider.net.code_dim or provider.code_dim)")
     return int(dim)
 
 
@@ -444,9 +458,7 @@ def consistency_residuals(
     d1, gu, gv = lookup1.sample_grad(depth1)
     r = np.where(valid, d1 - z1, 0.0)
     # dr/dp_c1 = g^T dP1/dp_c1 - e3  (S, 3)
-    a = np.stack(
-        [gu * fx / zs, gv * fy / zs, -(gu * fx * p_c1[:, 0] + gv * fy * p_c1[:, 1]) / zs**2 - 1.0], -1
-    )
+    a = np.stack([gu * fx / zs, gv * fy / zs, -(gu * fx * p_c1[:, 0] + gv * fy * p_c1[:, 1]) / zs**2 - 1.0], -1)
     a = np.where(valid[:, None], a, 0.0)
     dp_dd2 = rays2 @ R12.T  # (S, 3) d p_c1 / d d2
     dr_dd2 = np.einsum("si,si->s", a, dp_dd2)
@@ -545,6 +557,7 @@ def make_consistency_factor(
         min_depth=cfg.min_depth,
     )
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
+    sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
     kx1, kx2 = (int(k) for k in pose_keys)
     kc1, kc2 = (int(k) for k in code_keys)
     if len({kx1, kx2, kc1, kc2}) != 4:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from runtime.cli import slam_main
-from runtime.dense import DenseConfig, LinearizedDepth
+from runtime.dense import DenseConfig, DenseMapper, GroundTruthDepth, LinearizedDepth
 from runtime.io.euroc import read_euroc
 from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
@@ -41,9 +41,7 @@ def runs(seq8, tmp_path_factory):
 
     DepthNetwork.decode = spy
     try:
-        m_dense = run_sequence(
-            read_euroc(seq8), dense_out, dense=DenseConfig(n_consis=200), progress=False, plot=False
-        )
+        m_dense = run_sequence(read_euroc(seq8), dense_out, dense=DenseConfig(n_consis=200), progress=False, plot=False)
     finally:
         DepthNetwork.decode = orig
     return sparse_out, m_sparse, dense_out, m_dense, calls
@@ -120,6 +118,51 @@ def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
     assert kd.calls == 1
     p.depth(c0 + np.array([1.0, 0.0, 0.0]))  # moved beyond the threshold: relinearised
     assert kd.calls == 2
+
+
+def test_ground_truth_depth_source_keeps_the_code_part_of_the_network():
+    rng = np.random.default_rng(1)
+    d0 = rng.uniform(1, 3, (4, 5))
+    B = rng.normal(size=(4, 5, 3)) * 0.1
+
+    class Lin:
+        net = type("N", (), {"code_dim": 3})()
+        uncertainty = np.full((4, 5), 0.3, np.float32)
+
+        def depth(self, c):
+            return d0 + B @ c
+
+        def jacobian(self, c):
+            return self.depth(c), B
+
+    gt = rng.uniform(1, 3, (4, 5))
+    gt[0, 0] = 0.0  # a hole: the network's depth stays there
+    g = GroundTruthDepth(Lin(), gt, b=0.05)
+    c = np.array([0.3, -0.1, 0.2])
+    want = np.where(gt > 0, gt, d0) + B @ c
+    np.testing.assert_allclose(g.depth(np.zeros(3)), np.where(gt > 0, gt, d0), atol=1e-12)
+    d, J = g.jacobian(c)
+    np.testing.assert_allclose(d, want, atol=1e-12)
+    np.testing.assert_allclose(J, B)
+    assert g.uncertainty.shape == (4, 5) and np.all(g.uncertainty == np.float32(0.05))
+    with pytest.raises(ValueError, match="does not match"):
+        GroundTruthDepth(Lin(), np.ones((3, 3)), b=0.05)
+    with pytest.raises(ValueError, match="depth_source"):
+        DenseConfig(depth_source="lidar")
+
+
+def test_code_keyframes_fall_back_to_the_most_recent_when_nothing_is_covisible():
+    class Backend:
+        active = [3, 5, 6, 8, 9]
+
+        def covisible_keyframes(self, kf, n):
+            return [6] if kf == 9 else []  # only keyframe 6 shares landmarks with the newest
+
+    for fill, want in ((False, [9, 6]), (True, [9, 6, 8, 5])):
+        m = DenseMapper.__new__(DenseMapper)
+        m.cfg = DenseConfig(n_code_keyframes=4, fill_recent=fill)
+        m.kfs = dict.fromkeys(Backend.active)
+        assert m._select(Backend()) == want
 
 
 def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):

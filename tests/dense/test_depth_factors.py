@@ -12,6 +12,7 @@ from runtime.backend.depth_factors import (
     Bilinear,
     DepthFactorConfig,
     consistency_residuals,
+    correlation_inflation,
     inside_image,
     make_consistency_factor,
     make_geometric_depth_factors,
@@ -138,6 +139,35 @@ def test_geometric_sigmas_and_robust_loss():
     assert f.error(v) == pytest.approx(huber.sum(), rel=1e-9)
 
 
+def test_correlation_inflation_known_answers_and_effect_on_sigmas():
+    assert correlation_inflation(100, None) == 1.0
+    assert correlation_inflation(100, 25) == pytest.approx(2.0)
+    assert correlation_inflation(10, 25) == 1.0  # fewer rows than effective: no deflation
+    with pytest.raises(ValueError, match="geo_eff_rows"):
+        DepthFactorConfig(geo_eff_rows=0)
+    T, uv, X_w, prov, code = geometric_setup(seed=1, n=20)
+    base = DepthFactorConfig(min_sigma=0.03)
+    (f0,) = make_geometric_depth_factors(X(0), C(0), uv, prov, T_B_C, landmarks_w=X_w, cfg=base)
+    (f5,) = make_geometric_depth_factors(
+        X(0), C(0), uv, prov, T_B_C, landmarks_w=X_w, cfg=DepthFactorConfig(min_sigma=0.03, geo_eff_rows=5)
+    )
+    s0, s5 = f0.noiseModel().noise().sigmas(), f5.noiseModel().noise().sigmas()
+    np.testing.assert_allclose(s5, s0 * 2.0, rtol=1e-12)  # 20 rows worth 5: sigmas x sqrt(4)
+    # chunked factors of one keyframe share the keyframe's inflation (all its rows count)
+    keys = [L(j) for j in range(20)]
+    chunks = make_geometric_depth_factors(
+        X(0),
+        C(0),
+        uv,
+        prov,
+        T_B_C,
+        landmark_keys=keys,
+        cfg=DepthFactorConfig(min_sigma=0.03, chunk_size=8, geo_eff_rows=5),
+    )
+    assert [f.dim() for f in chunks] == [8, 8, 4]
+    np.testing.assert_allclose(np.concatenate([f.noiseModel().noise().sigmas() for f in chunks]), s0 * 2.0, rtol=1e-12)
+
+
 def test_geometric_drops_pixels_outside_and_checks_inputs():
     T, uv, X_w, prov, code = geometric_setup(n=4)
     uv[1] = [W + 3.0, 5.0]
@@ -251,6 +281,10 @@ def test_consistency_sigmas_propagate_both_maps():
         f = make_consistency_factor((X(0), X(1)), (C(0), C(1)), (p1, p2), uv2, K, T_B_C, (T1, T2), zero, cfg)
         # pure translation: dz1/dd2 = 1, and d_k1 is flat: s = sqrt(s1^2 + s2^2) = sqrt(2) * sqrt(2) * 0.02
         np.testing.assert_allclose(f.noiseModel().sigmas(), 0.04, rtol=1e-9)
+    # two valid rows counted as half an independent one: sigmas x sqrt(2 / 0.5)
+    cfg = DepthFactorConfig(consis_huber_k=None, min_sigma=1e-4, consis_eff_rows=0.5)
+    f = make_consistency_factor((X(0), X(1)), (C(0), C(1)), (p1, p2), uv2, K, T_B_C, (T1, T2), zero, cfg)
+    np.testing.assert_allclose(f.noiseModel().sigmas(), 0.08, rtol=1e-9)
     # a depth gradient in k1 adds to the propagated variance in "full" mode only
     v, u = np.mgrid[0:H, 0:W].astype(np.float64)
     p1g = LinearDepth(3.0 + 0.02 * (u - K[2]), np.zeros((CD, H, W)), B)
@@ -341,9 +375,7 @@ def test_lm_recovers_known_codes(landmarks):
     assert min(err0) > 0.3
     assert max(err1) < 0.06, (err0, err1)
     for k in range(3):  # the decoded maps match the true wall depth to millimetres
-        rmse = np.sqrt(
-            np.mean((provs[k].depth(res.atVector(C(k))) - plane_depth(Ts[k], K, (H, W), plane_x)) ** 2)
-        )
+        rmse = np.sqrt(np.mean((provs[k].depth(res.atVector(C(k))) - plane_depth(Ts[k], K, (H, W), plane_x)) ** 2))
         assert rmse < 0.005
     # LM reached the optimum: the true codes (a point near it, given the noise) cost more
     at_truth = gtsam.Values(res)
@@ -387,9 +419,7 @@ def test_linearisation_cost_at_realistic_sizes():
         v.insert(L(j), X_w[j])
     s = sample_consistency_pixels(uv, w, h, 600, rng=0)
     geo_fixed = make_geometric_depth_factors(X(0), C(0), uv, prov[0], T_B_C, landmarks_w=X_w)
-    geo_var = make_geometric_depth_factors(
-        X(0), C(0), uv, prov[0], T_B_C, landmark_keys=[L(j) for j in range(150)]
-    )
+    geo_var = make_geometric_depth_factors(X(0), C(0), uv, prov[0], T_B_C, landmark_keys=[L(j) for j in range(150)])
     cons = [
         make_consistency_factor(
             (X(0), X(1)), (C(0), C(1)), prov, s.uv, Kn, T_B_C, (T1, T2), (np.zeros(CD), np.zeros(CD))
@@ -445,9 +475,7 @@ def test_keyframe_depth_provider_is_decoded_once_per_code():
     for j, p in enumerate(X_w):
         v.insert(L(j), p)
     cfg = DepthFactorConfig(geo_huber_k=None, chunk_size=10)
-    facs = make_geometric_depth_factors(
-        X(0), C(0), uv, kf, T_B_C, landmark_keys=[L(j) for j in range(40)], cfg=cfg
-    )
+    facs = make_geometric_depth_factors(X(0), C(0), uv, kf, T_B_C, landmark_keys=[L(j) for j in range(40)], cfg=cfg)
     assert len(facs) == 4
     for f in facs:
         jac = analytic_jacobians(f, v)

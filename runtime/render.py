@@ -1,0 +1,207 @@
+"""Point clouds as images: a z-buffered splat renderer from a virtual pinhole camera (notebook figures).
+
+The maps ``dit-slam`` writes (``sparse_map.ply``, ``dense_map.ply``) are point clouds in the SLAM world
+frame. To show them as pictures without a 3-D viewer:
+
+* :func:`look_at` builds a virtual camera pose ``T_w_c`` (OpenCV optical frame: x right, y down, z forward)
+  from an eye position and a target;
+* :func:`render_points` projects the points with a pinhole :class:`runtime.geometry.Camera` and keeps, per
+  pixel, the nearest point (z-buffer), each point covering a ``(2 r + 1) x (2 r + 1)`` pixel square
+  (``radius`` r); it returns the depth image (0 = empty), the colour image and the index of the point seen;
+* :func:`project_points` projects a polyline (e.g. a trajectory) into the same image, for overlays;
+* :func:`align_se3` is the SE(3) alignment (Umeyama, no scale) of an estimated trajectory to ground truth,
+  as a transform, so that the maps can be drawn in the ground-truth frame (``runtime.eval`` aligns the
+  same way inside ``evo`` but returns only the aligned positions).
+
+Vectorised numpy (one ``np.minimum.at`` per splat offset); no per-point Python loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from runtime.geometry import Camera, inv_T
+
+__all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3"]
+
+
+@dataclass
+class RenderedPoints:
+    """Result of :func:`render_points`.
+
+    Attributes:
+        depth: (H, W) float32 z-depth [m] of the nearest point per pixel, 0 where no point landed.
+        rgb: (H, W, 3) uint8 colour of that point (``background`` where empty), or None without colours.
+        index: (H, W) int64 index (into the input points) of the point seen, -1 where empty.
+    """
+
+    depth: np.ndarray
+    rgb: np.ndarray | None
+    index: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool: pixels covered by a point."""
+        return self.index >= 0
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Pose ``T_w_c`` (4, 4) of a camera at ``eye`` looking at ``target`` (world, metres).
+
+    The camera's z axis points from ``eye`` to ``target``, its y axis (image down) is as close as possible
+    to ``-up``, x = y cross z (image right).
+
+    Raises:
+        ValueError: ``eye == target`` or the viewing direction is parallel to ``up``.
+
+    >>> T = look_at([0, 0, 0], [1, 0, 0])   # looking along world +x, z up: image right is world -y
+    >>> np.round(T[:3, :3], 6).tolist()
+    [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+    """
+    eye = np.asarray(eye, dtype=np.float64).reshape(3)
+    target = np.asarray(target, dtype=np.float64).reshape(3)
+    up = np.asarray(up, dtype=np.float64).reshape(3)
+    z = target - eye
+    if not np.linalg.norm(z) > 0:
+        raise ValueError(f"eye {eye.tolist()} and target {target.tolist()} coincide")
+    z /= np.linalg.norm(z)
+    x = np.cross(-up, z)  # right = down x forward
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError(f"viewing direction {z.tolist()} is parallel to up {up.tolist()}: pass another up")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], 1)
+    T[:3, 3] = eye
+    return T
+
+
+def project_points(
+    xyz_w: np.ndarray, T_w_c: np.ndarray, camera: Camera, near: float = 0.05
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points (N, 3) -> pixels (N, 2) ``(u, v)``, depths z (N,) [m] and a mask (N,) of points in
+    front of the camera (``z > near``) that land inside the image (pinhole, the camera's distortion is
+    ignored)."""
+    p = np.asarray(xyz_w, dtype=np.float64).reshape(-1, 3)
+    T_c_w = inv_T(np.asarray(T_w_c, dtype=np.float64))
+    pc = p @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+    z = pc[:, 2]
+    front = np.isfinite(pc).all(1) & (z > near)
+    zs = np.where(front, z, 1.0)
+    uv = np.stack([camera.fx * pc[:, 0] / zs + camera.cx, camera.fy * pc[:, 1] / zs + camera.cy], -1)
+    inside = front & (uv[:, 0] > -0.5) & (uv[:, 1] > -0.5)
+    inside &= (uv[:, 0] < camera.width - 0.5) & (uv[:, 1] < camera.height - 0.5)
+    return uv, z, inside
+
+
+def render_points(
+    xyz_w: np.ndarray,
+    T_w_c: np.ndarray,
+    camera: Camera,
+    rgb: np.ndarray | None = None,
+    radius: int = 0,
+    near: float = 0.05,
+    background: int = 255,
+) -> RenderedPoints:
+    """Z-buffered splat of a point cloud seen from a virtual camera.
+
+    Args:
+        xyz_w: (N, 3) points in the world [m].
+        T_w_c: (4, 4) camera pose (camera to world, OpenCV optical frame), e.g. from :func:`look_at`.
+        camera: pinhole intrinsics and image size of the virtual camera (distortion ignored).
+        rgb: optional (N, 3) uint8 colours (or (N,) grey).
+        radius: each point covers the pixels within ``radius`` (Chebyshev) of its projection.
+        near: points closer than this [m] (or behind the camera) are dropped.
+        background: grey level of empty pixels in ``rgb``.
+
+    Returns:
+        :class:`RenderedPoints`. Ties in depth keep the point with the lower index.
+
+    >>> cam = Camera(10.0, 10.0, 2.0, 2.0, 5, 5)
+    >>> r = render_points([[0.0, 0.0, 2.0], [0.0, 0.0, 1.0]], np.eye(4), cam)
+    >>> float(r.depth[2, 2]), int(r.index[2, 2]), int(r.mask.sum())   # the nearer point wins
+    (1.0, 1, 1)
+    """
+    p = np.asarray(xyz_w, dtype=np.float64).reshape(-1, 3)
+    if radius < 0:
+        raise ValueError(f"radius={radius}: must be >= 0")
+    if camera.width < 1 or camera.height < 1:
+        raise ValueError(f"image size {camera.width}x{camera.height} is empty")
+    col = None
+    if rgb is not None:
+        col = np.asarray(rgb)
+        if col.ndim == 1:
+            col = np.repeat(col[:, None], 3, 1)
+        if col.shape != (p.shape[0], 3):
+            raise ValueError(f"rgb has shape {np.asarray(rgb).shape}, expected ({p.shape[0]}, 3) or ({p.shape[0]},)")
+        col = col.astype(np.uint8)
+    W, H = int(camera.width), int(camera.height)
+    uv, z, ok = project_points(p, T_w_c, camera, near)
+    idx = np.nonzero(ok)[0]
+    u0 = np.floor(uv[idx, 0] + 0.5).astype(np.int64)  # pixel u covers [u - 0.5, u + 0.5)
+    v0 = np.floor(uv[idx, 1] + 0.5).astype(np.int64)
+    zi = z[idx]
+    zbuf = np.full(H * W, np.inf)
+    pix_all, pt_all = [], []
+    for dv in range(-radius, radius + 1):
+        for du in range(-radius, radius + 1):  # (2r + 1)^2 offsets, each vectorised over all points
+            u, v = u0 + du, v0 + dv
+            m = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            pix = v[m] * W + u[m]
+            np.minimum.at(zbuf, pix, zi[m])
+            pix_all.append(pix)
+            pt_all.append(np.nonzero(m)[0])
+    index = np.full(H * W, -1, dtype=np.int64)
+    if pix_all:
+        pix = np.concatenate(pix_all)
+        k = np.concatenate(pt_all)
+        win = zi[k] == zbuf[pix]  # this point is the nearest at this pixel
+        pix, k = pix[win], k[win]
+        order = np.lexsort((idx[k], pix))  # by pixel, then by point index
+        pix, pts = pix[order], idx[k[order]]
+        first = np.r_[True, pix[1:] != pix[:-1]]  # per pixel, the lowest index among the nearest
+        index[pix[first]] = pts[first]
+    index = index.reshape(H, W)
+    depth = np.where(index >= 0, zbuf.reshape(H, W), 0.0).astype(np.float32)
+    img = None
+    if col is not None:
+        img = np.full((H, W, 3), background, dtype=np.uint8)
+        img[index >= 0] = col[index[index >= 0]]
+    return RenderedPoints(depth, img, index)
+
+
+def align_se3(est_ts: np.ndarray, est_T: np.ndarray, gt_ts: np.ndarray, gt_T: np.ndarray) -> np.ndarray:
+    """``T_gt_est`` (4, 4): the rigid transform (no scale) that best maps the estimated positions onto the
+    ground truth interpolated at the estimate's timestamps (Umeyama, least squares over positions).
+
+    Args:
+        est_ts: (N,) int64 ns; est_T: (N, 4, 4) estimated ``T_w_b``.
+        gt_ts: (K,) int64 ns; gt_T: (K, 4, 4) ground-truth ``T_w_b``.
+
+    Returns:
+        ``T_gt_est`` with ``p_gt = T_gt_est @ p_est`` (apply it to the estimated map and trajectory).
+
+    Raises:
+        ValueError: fewer than 3 estimated poses inside the ground truth's time range.
+    """
+    from runtime.eval import interpolate_poses
+
+    est_T = np.asarray(est_T, dtype=np.float64)
+    ref, inside = interpolate_poses(est_ts, gt_ts, gt_T)
+    if inside.sum() < 3:
+        raise ValueError(f"only {int(inside.sum())} estimated poses lie within the ground truth's time range")
+    x = est_T[inside, :3, 3]  # (M, 3)
+    y = ref[:, :3, 3]
+    mx, my = x.mean(0), y.mean(0)
+    S = (y - my).T @ (x - mx) / x.shape[0]  # (3, 3) cross-covariance
+    U, _, Vt = np.linalg.svd(S)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1.0
+    R = U @ D @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = my - R @ mx
+    return T

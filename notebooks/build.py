@@ -39,7 +39,7 @@ __all__ = ["NOTEBOOKS", "SRC", "build", "parse_cells", "same_cells", "sync_markd
 HERE = Path(__file__).resolve().parent
 SRC = HERE / "src"
 #: Notebooks built from ``src/<name>.py`` into ``<name>.ipynb``.
-NOTEBOOKS = ("01_depth_modalities", "02_code_jacobian")
+NOTEBOOKS = ("01_depth_modalities", "02_code_jacobian", "03_trajectories", "04_textureless")
 
 _HEADER = re.compile(r"^# %%(?P<rest>.*)$")
 KERNELSPEC = {"display_name": "Python 3 (ipykernel)", "language": "python", "name": "python3"}

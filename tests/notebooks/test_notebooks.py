@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 import nbformat
+import numpy as np
 import pytest
 
 from tests.notebooks.run import REPO, execute_notebook, inject_parameters
@@ -53,7 +54,7 @@ def test_parse_cells_known_answer():
         build.parse_cells("# %% foo\n")
 
 
-@pytest.mark.parametrize("name", ["01_depth_modalities", "02_code_jacobian"])
+@pytest.mark.parametrize("name", ["01_depth_modalities", "02_code_jacobian", "03_trajectories", "04_textureless"])
 def test_committed_notebook_matches_source_and_has_outputs(name):
     build = _build_module()
     committed = nbformat.read(NB / f"{name}.ipynb", as_version=4)
@@ -165,5 +166,78 @@ def test_02_code_jacobian_tiny(tmp_path):
     assert net["ratios_to_ort_fd"]["ort_fd"] == 1.0
     assert net["comparison"]["accuracy"]["torch_jacfwd"] < 1e-4  # jacfwd == autograd forward mode
     for png in ("jacobian_delta.png", "jacobian_timing.png"):
+        assert (out / png).stat().st_size > 1000, png
+    assert sum("image/png" in o.get("data", {}) for o in _outputs(nb)) >= 2
+
+
+@pytest.fixture(scope="module")
+def sim_cache(tmp_path_factory):
+    """One sequence cache for notebooks 03 and 04 (they share the tiny whitewall sequence)."""
+    return tmp_path_factory.mktemp("sim")
+
+
+@pytest.mark.slow
+def test_03_trajectories_tiny(tmp_path, sim_cache):
+    from runtime.eval import trajectory_metrics
+    from runtime.io.euroc import read_euroc
+    from runtime.io.tum import read_tum
+
+    out = tmp_path / "out"
+    params = {
+        "OUT": str(out),
+        "DATA": str(sim_cache),
+        "PRESETS": ["textured", "whitewall"],
+        "SEEDS": [0],
+        "DURATION": 24.0,  # whitewall's minimum
+        "SCALE": 0.25,
+        "MODES": ["sparse", "dense_eq13", "dense_eq13_14", "dense_gt_eq13_14"],
+    }
+    nb = execute_notebook(NB / "03_trajectories.ipynb", params, tmp_path / "03.ipynb", timeout=300, env=_env(tmp_path))
+    assert _errors(nb) == []
+    res = json.loads((out / "table3.json").read_text())
+    rows = {(r["preset"], r["mode"]): r for r in res["rows"]}
+    assert set(rows) == {(p, m) for p in params["PRESETS"] for m in params["MODES"]}
+    for (preset, mode), r in rows.items():
+        assert r["seed"] == 0 and r["fps"] > 0 and r["keyframes"] > 5
+        # the table's ATE is what the run's trajectory.txt gives against the ground truth (TUM: 9 decimals)
+        ts, T = read_tum(out / "runs" / f"{preset}_s0_{mode}" / "trajectory.txt")
+        gt = read_euroc(sim_cache / f"euroc_{preset}_24s_s0_x0.25").gt
+        assert r["ate"] == pytest.approx(trajectory_metrics(ts, T, gt.ts, gt.T_w_b)["ate_se3_rmse_m"], rel=1e-6)
+        dense = mode != "sparse"
+        assert np.isfinite(r["rmse_c"]) == dense and (r["decoder_calls"] > 0) == dense
+    assert res["dense_configs"]["sparse"] is None
+    assert res["dense_configs"]["dense_eq13"]["use_consistency"] is False
+    assert res["dense_configs"]["dense_eq13_14"]["use_consistency"] is True
+    assert res["dense_configs"]["dense_gt_eq13_14"]["depth_source"] == "ground_truth"
+    # the rendered depth is the prior there: its c = 0 depth equals the ground truth (interpolation aside)
+    assert rows[("textured", "dense_gt_eq13_14")]["rmse_b"] < 1e-3 < rows[("textured", "dense_eq13_14")]["rmse_b"]
+    assert "| textured | dense, Eq. 13 + 14 | 1 |" in res["table"]
+    assert set(res["bars"]) >= {"textured_dense_ate_le_sparse", "whitewall_dense_ate_le_0.9_sparse"}
+    for png in ("table3_ate.png", "fig10_trajectories.png"):
+        assert (out / png).stat().st_size > 1000, png
+    assert sum("image/png" in o.get("data", {}) for o in _outputs(nb)) >= 2
+
+
+@pytest.mark.slow
+def test_04_textureless_tiny(tmp_path, sim_cache):
+    out = tmp_path / "out"
+    params = {"OUT": str(out), "DATA": str(sim_cache), "DURATION": 24.0, "SCALE": 0.25, "VIEW_SIZE": (160, 100)}
+    nb = execute_notebook(NB / "04_textureless.ipynb", params, tmp_path / "04.ipynb", timeout=300, env=_env(tmp_path))
+    assert _errors(nb) == []
+    res = json.loads((out / "textureless.json").read_text())
+    info = json.loads((sim_cache / "euroc_whitewall_24s_s0_x0.25" / "sim_info.json").read_text())
+    assert res["stop_s"] == info["whitewall_window_s"][1]  # the runs stop at the end of the hold
+    assert res["frames"] == int(round(res["stop_s"] * 20)) + 1
+    assert res["dense"]["dense_map_points"] > 100 and res["sparse"]["keyframes"] > 5
+    fig4 = res["fig4"]
+    assert {"textured", "white wall"} <= set(fig4)
+    n_consis = res["dense_config"]["n_consis"]
+    for f in fig4.values():
+        assert sum(f["n_per_cell"]) == n_consis and sum(f["gamma"]) == pytest.approx(1.0)
+        c, n = np.array(f["counts"]), np.array(f["n_per_cell"])
+        if c.sum():  # the cell with the most features gets the fewest samples
+            assert n[np.argmax(c)] == n.min()
+    assert sum(fig4["white wall"]["counts"]) < sum(fig4["textured"]["counts"])
+    for png in ("fig11_maps.png", "fig4_sampling.png"):
         assert (out / png).stat().st_size > 1000, png
     assert sum("image/png" in o.get("data", {}) for o in _outputs(nb)) >= 2

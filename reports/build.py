@@ -1,0 +1,655 @@
+"""Regenerate ``reports/README.md``, the collected current figures, from the committed result files.
+
+    python reports/build.py            # rewrite reports/README.md
+    python reports/build.py --check    # exit 1 when reports/README.md differs from what the sources give
+
+Sources (all committed): the benchmark JSON in ``benchmarks/results/`` (``models.json``, ``bench_train.json``,
+``bench_dense_*.json``, ``jacobian.json`` / ``network.json`` and their copies in sub-folders,
+``slam/bench_slam.json``), the shipped model's ``runtime/assets/default_model/val_metrics.json``, and the
+outputs of the committed notebooks ``notebooks/01_depth_modalities.ipynb`` and
+``notebooks/03_trajectories.ipynb`` (the tables they display). Every section names the command that produced
+its source, the machine (from the JSON or the notebook's printout) and the date.
+
+The JSON files carry no date: the date given is the committer date of the last commit that changed the source
+file (``git log -1 --format=%cI -- FILE``); notebook 03 prints the date of its run, which is used instead. A
+source that is not committed yet (or has local changes) is dated by its file modification time and marked *not
+committed*: commit the sources, run this script again and commit ``reports/README.md``
+(``tests/test_reports.py`` checks that the committed README equals this script's output, so it cannot drift
+from the results).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results"
+README = REPO / "reports" / "README.md"
+
+__all__ = ["build", "source_files", "file_date", "main"]
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+def _git(*args: str) -> str | None:
+    try:
+        r = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, timeout=30, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def file_date(path: Path) -> str:
+    """``YYYY-MM-DD HH:MM UTC`` of the last commit that changed ``path`` (or its mtime, marked)."""
+    rel = path.relative_to(REPO).as_posix()
+    dirty = _git("status", "--porcelain", "--", rel)
+    stamp = None if dirty else _git("log", "-1", "--format=%cI", "--", rel)
+    if stamp:
+        t = dt.datetime.fromisoformat(stamp).astimezone(dt.timezone.utc)
+        return t.strftime("%Y-%m-%d %H:%M UTC") + " (commit)"
+    t = dt.datetime.fromtimestamp(path.stat().st_mtime, dt.timezone.utc)
+    return t.strftime("%Y-%m-%d %H:%M UTC") + " (file mtime: **not committed**)"
+
+
+def _load(path: Path) -> dict:
+    # the benchmarks write NaN for missing metrics (json.dumps default); json.loads reads it back as nan
+    return json.loads(path.read_text())
+
+
+def _num(x, digits: int = 3, scale: float = 1.0, suffix: str = "") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "–"
+    return f"{x * scale:.{digits}f}{suffix}"
+
+
+def _mean_std(values, digits: int = 1, scale: float = 1.0) -> str:
+    v = [x * scale for x in values if x is not None and math.isfinite(x)]
+    if not v:
+        return "–"
+    m = sum(v) / len(v)
+    if len(v) == 1:
+        return f"{m:.{digits}f}"
+    s = math.sqrt(sum((x - m) ** 2 for x in v) / len(v))
+    return f"{m:.{digits}f} ± {s:.{digits}f}"
+
+
+def _rel_path(p) -> str:
+    """Paths inside this repository's results folder shown relative to the repository (machine-independent)."""
+    s = str(p)
+    m = re.search(r"(benchmarks/results(/.*)?)$", s)
+    return m.group(1) if m else s
+
+
+def _machine(m: dict | None) -> str:
+    """One line from the machine fields the benchmarks record (their names differ between scripts)."""
+    if not m:
+        return "not recorded"
+    cpu = m.get("cpu") or m.get("processor") or m.get("machine")
+    cores = m.get("cores") or m.get("cpus") or m.get("cpu_count")
+    parts = [cpu, f"{cores} cores" if cores else None, m.get("platform")]
+    if m.get("torch"):
+        parts.append(f"torch {m['torch']}")
+    if m.get("onnxruntime"):
+        parts.append(f"onnxruntime {m['onnxruntime']}")
+    load = m.get("loadavg") or m.get("loadavg_start") or m.get("load_avg_1min")
+    if isinstance(load, list):
+        load = load[0]
+    if load is not None:
+        parts.append(f"load {load:.1f} at the start")
+    return ", ".join(str(p) for p in parts if p)
+
+
+def _flags(cfg: dict, spec: list[tuple[str, str]]) -> list[str]:
+    """Command-line flags from a saved argparse namespace: ``spec`` = [(key, flag)]; lists expand, booleans
+    become the flag when true, None is left out."""
+    out: list[str] = []
+    for key, flag in spec:
+        v = cfg.get(key)
+        if v is None or v is False or (isinstance(v, list) and not v):
+            continue
+        if v is True:
+            out.append(flag)
+        elif isinstance(v, list):
+            out += [flag, *map(str, v)]
+        else:
+            out += [flag, _rel_path(v) if isinstance(v, str) else f"{v:g}" if isinstance(v, float) else str(v)]
+    return out
+
+
+def _source_block(files: list[Path], command: str, machine: str, note: str = "", date: str | None = None) -> str:
+    src = ", ".join(f"[`{p.relative_to(REPO).as_posix()}`](../{p.relative_to(REPO).as_posix()})" for p in files)
+    dates = date or "; ".join(file_date(p) for p in files)
+    lines = [f"- source: {src}", f"- command: `{command}`", f"- machine: {machine}", f"- date: {dates}"]
+    if note:
+        lines.append(f"- note: {note}")
+    return "\n".join(lines)
+
+
+def _table(head: list[str], rows: list[list[str]]) -> str:
+    return "\n".join(
+        ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+    )
+
+
+# ------------------------------------------------------------------------------------------------ notebooks
+def _nb_outputs(path: Path) -> list[dict]:
+    nb = json.loads(path.read_text())
+    return [o for c in nb.get("cells", []) if c.get("cell_type") == "code" for o in c.get("outputs", [])]
+
+
+def _text(x) -> str:
+    return "".join(x) if isinstance(x, list) else str(x or "")
+
+
+def _nb_markdown(path: Path, marker: str) -> str | None:
+    """The first markdown output of a notebook that contains ``marker``."""
+    for o in _nb_outputs(path):
+        md = _text(o.get("data", {}).get("text/markdown"))
+        if marker in md:
+            return md.strip()
+    return None
+
+
+def _nb_line(path: Path, prefix: str) -> str | None:
+    """The first printed line of a notebook that starts with ``prefix`` (without it)."""
+    for o in _nb_outputs(path):
+        if o.get("output_type") == "stream":
+            for line in _text(o.get("text")).splitlines():
+                if line.startswith(prefix):
+                    return line[len(prefix) :].strip()
+    return None
+
+
+# ------------------------------------------------------------------------------------------------ sections
+def _table1() -> list[str]:
+    out = ["## Table 1: depth networks x input modalities", ""]
+    nb = REPO / "notebooks" / "01_depth_modalities.ipynb"
+    table = _nb_markdown(nb, "| modality / method |") if nb.is_file() else None
+    if table:
+        head, _, body = table.partition("\n\n")
+        out += [
+            "Accuracy on synthetic validation frames after a short CPU training budget per cell (the committed run "
+            "of notebook 01; its intro states the budget). The ordering of the variants is *not* the paper's "
+            "at this budget.",
+            "",
+            body.strip() if body else head,
+            "",
+            _source_block(
+                [nb],
+                "python -m tests.notebooks.run notebooks/01_depth_modalities.ipynb --inplace",
+                _nb_line(nb, "machine") or "not printed",
+                f"the notebook's setting: {head.strip()}" if body else "",
+            ),
+            "",
+        ]
+        shipped = _nb_markdown(nb, "shipped default (ONNX)")
+        if shipped:
+            out += ["The shipped default model through ONNX Runtime, same frames (notebook 01):", ""]
+            out += [shipped.partition("\n\n")[2].strip() or shipped, ""]
+    vm = REPO / "runtime" / "assets" / "default_model" / "val_metrics.json"
+    if vm.is_file():
+        m = _load(vm)
+        man = _load(vm.parent / "manifest.json") if (vm.parent / "manifest.json").is_file() else {}
+        out += [
+            f"The shipped default model (`{man.get('model', '?')}` / `{man.get('modality', '?')}`, "
+            f"{man.get('height', '?')}x{man.get('width', '?')}, ONNX Runtime, code 0) on {m.get('frames', '?')} "
+            "regenerated synthetic validation frames (checked by `tests/test_default_model.py`):",
+            "",
+            _table(
+                ["RMSE [m]", "iRMSE [1/m]", "AbsRel", "MAE [m]", "δ1", "δ2", "δ3", "ms/frame"],
+                [
+                    [_num(m.get("rmse")), _num(m.get("irmse")), _num(m.get("abs_rel")), _num(m.get("mae"))]
+                    + [_num(m.get(k), 1, 100, " %") for k in ("delta1", "delta2", "delta3")]
+                    + [_num(m.get("ms"), 1)]
+                ],
+            ),
+            "",
+            _source_block(
+                [vm],
+                "python benchmarks/eval_onnx_depth.py --model runtime/assets/default_model --n-val 20 "
+                "--out runtime/assets/default_model/val_metrics.json",
+                "not recorded in the JSON (see runtime/assets/default_model/README.md: 2-core AMD EPYC, CPU only)",
+            ),
+            "",
+        ]
+    mj = RESULTS / "models.json"
+    if mj.is_file():
+        d = _load(mj)
+        c = d.get("config", {})
+        rows = [
+            [
+                r["model"],
+                r["modality"],
+                _num(r.get("params"), 2, 1e-6),
+                _num(r.get("infer_params"), 2, 1e-6),
+                _num(r.get("gflops"), 2),
+                _num(r.get("forward_ms_median"), 1),
+                _num(r.get("ratio_vs_fastdepth"), 2, suffix="x"),
+                _num(r.get("prior_ms"), 1),
+                _num(r.get("decoder_b8_ms"), 1),
+            ]
+            for r in d.get("rows", [])
+        ]
+        spec = [
+            ("models", "--models"),
+            ("modalities", "--modalities"),
+            ("height", "--height"),
+            ("width", "--width"),
+            ("width_mult", "--width-mult"),
+            ("runs", "--runs"),
+            ("warmup", "--warmup"),
+            ("threads", "--threads"),
+            ("channels_last", "--channels-last"),
+            ("out", "--out"),
+        ]
+        cmd = " ".join(
+            ["python benchmarks/bench_models.py", *_flags(c, spec)] + ([] if c.get("parts", True) else ["--no-parts"])
+        )
+        out += [
+            f"Inference cost (torch eager, batch 1, {c.get('height')}x{c.get('width')}, {c.get('threads')} threads; "
+            "forward = median; decoder b8 = the batch of 8 codes of the FD Jacobian):",
+            "",
+            _table(
+                [
+                    "model",
+                    "modality",
+                    "params [M]",
+                    "inference params [M]",
+                    "GFLOPs",
+                    "forward [ms]",
+                    "vs FastDepth",
+                    "prior [ms]",
+                    "decoder b8 [ms]",
+                ],
+                rows,
+            ),
+            "",
+            _source_block([mj], cmd, _machine(d.get("machine"))),
+            "",
+        ]
+    bt = RESULTS / "bench_train.json"
+    if bt.is_file():
+        d = _load(bt)
+        env = d.get("env", {})
+        rows = d.get("rows", [])
+        cmd = " ".join(
+            [
+                "python benchmarks/bench_train.py",
+                "--variants",
+                *dict.fromkeys(r["variant"] for r in rows),
+                "--modalities",
+                *dict.fromkeys(r["modality"] for r in rows),
+            ]
+            + _flags(
+                {
+                    "size": env.get("size"),
+                    "batch": env.get("batch"),
+                    "steps": env.get("steps"),
+                    "threads": env.get("threads"),
+                },
+                [("size", "--size"), ("batch", "--batch"), ("steps", "--steps"), ("threads", "--threads")],
+            )
+        )
+        out += [
+            f"Training throughput ({'x'.join(map(str, env.get('size', [])))}, batch {env.get('batch')}; step = "
+            "forward + loss + backward + AdamW; data = h5 read + augmentation + sparse sampling):",
+            "",
+            _table(
+                ["variant", "modality", "step [ms]", "images/s (step)", "data [ms/image]", "images/s (serial)"],
+                [
+                    [
+                        r["variant"],
+                        r["modality"],
+                        _num(r.get("step_ms"), 0),
+                        _num(r.get("step_img_s"), 2),
+                        _num(r.get("data_ms_per_img"), 1),
+                        _num(r.get("combined_img_s"), 2),
+                    ]
+                    for r in rows
+                ],
+            ),
+            "",
+            _source_block([bt], cmd, _machine(env), "command reconstructed from the JSON's `env` and rows"),
+            "",
+        ]
+    return out
+
+
+DENSE_LABEL = {
+    "sparse": "sparse",
+    "dense_eq13": "dense, Eq. 13",
+    "dense_eq13_14": "dense, Eq. 13 + 14",
+    "dense_gt_eq13_14": "dense, Eq. 13 + 14, rendered depth",
+}
+
+
+def _table3() -> list[str]:
+    out = ["## Table 3: sparse vs dense (tight coupling)", ""]
+    for f in sorted(RESULTS.glob("bench_dense*.json")):
+        d = _load(f)
+        a = d.get("args", {})
+        rows = d.get("rows", [])
+        groups: dict[tuple[str, str], list[dict]] = {}
+        for r in rows:
+            groups.setdefault((r["preset"], r["mode"]), []).append(r)
+        body = []
+        for (preset, mode), rs in groups.items():
+            body.append(
+                [
+                    preset,
+                    DENSE_LABEL.get(mode, mode),
+                    str(len(rs)),
+                    _mean_std([r["ate"] for r in rs], 1, 1e3),
+                    " / ".join(_num(r["ate"], 1, 1e3) for r in rs),
+                    _mean_std([r["fps"] for r in rs], 0),
+                ]
+                + [_mean_std([r.get(f"rmse_{k}") for r in rs], 3) for k in "abc"]
+            )
+        spec = [
+            ("presets", "--presets"),
+            ("seeds", "--seeds"),
+            ("duration", "--duration"),
+            ("scale", "--scale"),
+            ("modes", "--modes"),
+            ("set", "--set"),
+            ("data", "--data"),
+            ("out", "--out"),
+        ]
+        bars = d.get("bars", {})
+        out += [
+            f"Synthetic `sim/` sequences, {a.get('duration', '?'):g} s, seeds {a.get('seeds')}, scale "
+            f"{a.get('scale', 1.0):g}, shipped depth model; mean ± std over seeds (ATE: SE(3)-aligned RMSE; depth "
+            "RMSE on the keyframes that held a code: (a) sparse map points, (b) prior c = 0, (c) optimised code):",
+            "",
+            _table(
+                [
+                    "sequence",
+                    "mode",
+                    "seeds",
+                    "ATE [mm]",
+                    "ATE per seed [mm]",
+                    "FPS",
+                    "RMSE (a) [m]",
+                    "RMSE (b) [m]",
+                    "RMSE (c) [m]",
+                ],
+                body,
+            ),
+            "",
+            "Quality bars of the tight-coupling issue: "
+            + "; ".join(f"{k} {'met' if v.get('met') else '**not met**'}" for k, v in bars.items()),
+            "",
+            _source_block(
+                [f], " ".join(["python benchmarks/bench_dense.py", *_flags(a, spec)]), _machine(d.get("machine"))
+            ),
+            "",
+        ]
+    nb = REPO / "notebooks" / "03_trajectories.ipynb"
+    table = _nb_markdown(nb, "Table 3 shape") if nb.is_file() else None
+    if table:
+        head, _, body = table.partition("\n\n")
+        wall = _nb_line(nb, "notebook wall time")
+        out += [
+            f"The committed run of notebook 03 ({head.strip().rstrip(':')}; Fig. 10 is in the notebook):",
+            "",
+            body.strip(),
+            "",
+            _source_block(
+                [nb],
+                "nice -n 5 python -m tests.notebooks.run notebooks/03_trajectories.ipynb --inplace",
+                _nb_line(nb, "machine") or "not printed",
+                "; ".join(
+                    x
+                    for x in (f"notebook wall time {wall}" if wall else "", f"code: {_nb_line(nb, 'code')}")
+                    if x and not x.endswith("None")
+                ),
+                date=f"{_nb_line(nb, 'date')} (printed by the run)" if _nb_line(nb, "date") else None,
+            ),
+            "",
+        ]
+    return out
+
+
+def _jacobian() -> list[str]:
+    out = ["## The code Jacobian (Eq. 17): accuracy against autograd (Fig. 6) and speed ratios", ""]
+    jfiles = sorted(RESULTS.rglob("jacobian.json"), key=lambda p: (len(p.parts), str(p)))
+    rows = []
+    for f in jfiles:
+        d = _load(f)
+        b, fx = d["best"]["all_dims"], d["best"]["at_fixed_delta"]
+        m = d.get("model", {})
+        rows.append(
+            [
+                f"`{f.relative_to(RESULTS).as_posix()}`",
+                f"{m.get('source')} {m.get('height')}x{m.get('width')}",
+                f"{b['delta']:.2g}",
+                _num(b["mean_abs"], 2, 1e3),
+                _num(b["rel_mean"], 1, 100, " %"),
+                _num(fx["mean_abs"], 2, 1e3),
+                _num(fx["rel_mean"], 1, 100, " %"),
+                _num(fx["over_best"], 2, suffix="x"),
+            ]
+        )
+    if rows:
+        out += [
+            "Finite differences through ONNX Runtime against `torch.autograd` (forward mode) on the same "
+            "weights, mean |error| over pixels, dimensions, frames and codes:",
+            "",
+            _table(
+                [
+                    "result",
+                    "model",
+                    "best δ",
+                    "error at best [mm/unit]",
+                    "of mean abs(J)",
+                    "error at δ = 1e-2 [mm/unit]",
+                    "of mean abs(J)",
+                    "vs best",
+                ],
+                rows,
+            ),
+            "",
+        ]
+    spec_j = [
+        ("model", "--model"),
+        ("ckpt", "--ckpt"),
+        ("data", "--data"),
+        ("frames", "--frames"),
+        ("random_codes", "--random-codes"),
+        ("delta_min", "--delta-min"),
+        ("delta_max", "--delta-max"),
+        ("per_decade", "--per-decade"),
+        ("fixed_delta", "--fixed-delta"),
+        ("threads", "--threads"),
+        ("seed", "--seed"),
+        ("out", "--out"),
+    ]
+    standin = [("modality", "--modality"), ("height", "--height"), ("width", "--width"), ("width_mult", "--width-mult")]
+    for f in jfiles:
+        d = _load(f)
+        c = d.get("config", {})
+        flags = _flags(c, spec_j + ([] if c.get("model") else standin))
+        flags += [] if c.get("per_dim", True) else ["--no-per-dim"]
+        out += [f"`{f.relative_to(RESULTS).as_posix()}`: {d.get('model', {}).get('description', '')}", ""]
+        out += [
+            _source_block([f], " ".join(["python benchmarks/bench_jacobian.py", *flags]), _machine(d.get("machine"))),
+            "",
+        ]
+
+    nfiles = sorted(RESULTS.rglob("network.json"), key=lambda p: (len(p.parts), str(p)))
+    keys = [
+        ("torch_fd", "torch eager FD"),
+        ("torch_autograd", "torch autograd (fwd)"),
+        ("torch_jacfwd", "torch `jacfwd`"),
+        ("ort_exact", "exact ONNX graph"),
+        ("torch_reverse", "reverse mode (extrap.)"),
+    ]
+    rows = []
+    for f in nfiles:
+        d = _load(f)
+        st, ra, m = d["comparison"]["stats"], d.get("ratios_to_ort_fd", {}), d.get("model", {})
+        rows.append(
+            [
+                f"`{f.relative_to(RESULTS).as_posix()}`",
+                f"{m.get('source')} {m.get('height')}x{m.get('width')}",
+                str(d.get("machine", {}).get("ort_threads", d.get("config", {}).get("threads"))),
+                _num(st["ort_fd"]["median_ms"], 1),
+                _num(st.get("ort_prior", {}).get("median_ms"), 1),
+            ]
+            + [_num(ra.get(k), 0 if k == "torch_reverse" else 1, suffix="x") for k, _ in keys]
+        )
+    if rows:
+        out += [
+            "Time of one Jacobian (nominal + 8 perturbed codes) as ratios to the runtime's ONNX Runtime FD, measured "
+            "in one run (the paper: 4.5 ms FD on a GTX 1660 Ti; DeepFactors' autograd 340 ms, i.e. 76x):",
+            "",
+            _table(["result", "model", "threads", "ORT FD [ms]", "ORT prior [ms]"] + [n for _, n in keys], rows),
+            "",
+        ]
+    spec_n = [
+        ("model", "--model"),
+        ("ckpt", "--ckpt"),
+        ("data", "--data"),
+        ("threads", "--threads"),
+        ("runs", "--runs"),
+        ("torch_runs", "--torch-runs"),
+        ("sweep_runs", "--sweep-runs"),
+        ("warmup", "--warmup"),
+        ("rounds", "--rounds"),
+        ("rev_chunk", "--rev-chunk"),
+        ("seed", "--seed"),
+        ("out", "--out"),
+    ]
+    for f in nfiles:
+        d = _load(f)
+        c = d.get("config", {})
+        flags = _flags(c, spec_n + ([] if c.get("model") else standin))
+        flags += ([] if c.get("exact", True) else ["--no-exact"]) + ([] if c.get("sweep", True) else ["--no-sweep"])
+        out += [f"`{f.relative_to(RESULTS).as_posix()}`: {d.get('model', {}).get('description', '')}", ""]
+        out += [
+            _source_block([f], " ".join(["python benchmarks/bench_network.py", *flags]), _machine(d.get("machine"))),
+            "",
+        ]
+    return out
+
+
+def _slam() -> list[str]:
+    out = ["## Sparse VI-SLAM: accuracy and speed", ""]
+    f = RESULTS / "slam" / "bench_slam.json"
+    if not f.is_file():
+        return []
+    d = _load(f)
+    summ = d.get("summary", {})
+    out += [
+        f"`dit-slam` (sparse, runtime preset `{d.get('runtime', 'default')}`) on synthetic `sim/` sequences, "
+        f"{d.get('duration_s', '?'):g} s, IMU noise {'on' if d.get('imu_noise') else 'off'}; ATE after SE(3) "
+        "alignment, RPE over 1 s, FPS = frames / wall time of the whole run:",
+        "",
+        _table(
+            [
+                "sequence",
+                "runs",
+                "ATE mean [mm]",
+                "ATE max [mm]",
+                "RPE trans [mm]",
+                "RPE rot [deg]",
+                "FPS mean",
+                "FPS min",
+            ],
+            [
+                [
+                    p,
+                    str(s.get("runs")),
+                    _num(s.get("ate_se3_rmse_m_mean"), 1, 1e3),
+                    _num(s.get("ate_se3_rmse_m_max"), 1, 1e3),
+                    _num(s.get("rpe_trans_rmse_m_mean"), 1, 1e3),
+                    _num(s.get("rpe_rot_rmse_deg_mean"), 3),
+                    _num(s.get("fps_mean"), 0),
+                    _num(s.get("fps_min"), 0),
+                ]
+                for p, s in summ.items()
+            ],
+        ),
+        "",
+        "Per run:",
+        "",
+        _table(
+            ["sequence", "seed", "ATE SE(3) [mm]", "ATE Sim(3) [mm]", "scale", "keyframes", "FPS"],
+            [
+                [
+                    r["preset"],
+                    str(r["seed"]),
+                    _num(r.get("ate_se3_rmse_m"), 1, 1e3),
+                    _num(r.get("ate_sim3_rmse_m"), 1, 1e3),
+                    _num(r.get("sim3_scale"), 3),
+                    str(r.get("keyframes")),
+                    _num(r.get("fps"), 0),
+                ]
+                for r in d.get("runs", [])
+            ],
+        ),
+        "",
+        _source_block([f], "python benchmarks/" + d.get("command", "bench_slam.py"), _machine(d.get("machine"))),
+        "",
+    ]
+    return out
+
+
+def source_files() -> list[Path]:
+    """Every file the report is built from (for the test's committed-sources check)."""
+    files = sorted(RESULTS.rglob("*.json"))
+    files += [REPO / "runtime" / "assets" / "default_model" / n for n in ("val_metrics.json", "manifest.json")]
+    files += [REPO / "notebooks" / n for n in ("01_depth_modalities.ipynb", "03_trajectories.ipynb")]
+    return [f for f in files if f.is_file()]
+
+
+def build() -> str:
+    """The report's Markdown text."""
+    parts = [
+        "# Current figures",
+        "",
+        "Generated by `python reports/build.py` from the committed results: benchmark JSON in "
+        "[`benchmarks/results/`](../benchmarks/results/), the shipped model's metrics and the committed "
+        "notebooks' outputs. Do not edit by hand; `tests/test_reports.py` checks that this file equals the "
+        "script's output. Dates are those of the last commit that changed each source (the JSON files hold no "
+        "date), or the date a notebook's run printed. All accuracy figures are on **synthetic** data rendered by "
+        "`sim/`; all timings are on the CPU machines named with each source (2 cores shared with other jobs: "
+        "compare ratios measured in one run, not absolute times across runs).",
+        "",
+        "Contents: [Table 1](#table-1-depth-networks-x-input-modalities) · "
+        "[Table 3](#table-3-sparse-vs-dense-tight-coupling) · "
+        "[Jacobian](#the-code-jacobian-eq-17-accuracy-against-autograd-fig-6-and-speed-ratios) · "
+        "[SLAM](#sparse-vi-slam-accuracy-and-speed) · notebooks: "
+        "[01](../notebooks/01_depth_modalities.ipynb), [02](../notebooks/02_code_jacobian.ipynb), "
+        "[03](../notebooks/03_trajectories.ipynb), [04](../notebooks/04_textureless.ipynb)",
+        "",
+    ]
+    for section in (_table1, _table3, _jacobian, _slam):
+        parts += section()
+    return "\n".join(parts).rstrip() + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--check", action="store_true", help="compare with reports/README.md, write nothing")
+    a = ap.parse_args(argv)
+    text = build()
+    if "not committed" in text:
+        print("note: some sources are not committed; commit them, re-run this script and commit the README")
+    if a.check:
+        same = README.is_file() and README.read_text() == text
+        print(f"{README}: {'up to date' if same else 'OUT OF DATE (run python reports/build.py)'}")
+        return 0 if same else 1
+    README.write_text(text)
+    print(f"wrote {README}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -386,7 +386,10 @@ def _table3() -> list[str]:
             + "; ".join(f"{k} {'met' if v.get('met') else '**not met**'}" for k, v in bars.items()),
             "",
             _source_block(
-                [f], " ".join(["python benchmarks/bench_dense.py", *_flags(a, spec)]), _machine(d.get("machine"))
+                [f],
+                " ".join(["python benchmarks/bench_dense.py", *_flags(a, spec)]),
+                _machine(d.get("machine")),
+                note=d.get("note", ""),
             ),
             "",
         ]

@@ -27,6 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from runtime.geometry import Camera, R_to_quat_wxyz
+from runtime.io.euroc import GT_HEADER, IMU_HEADER
 from sim.imu import EUROC_ADIS16448, ImuNoise, add_imu_noise, synthesize_imu
 from sim.render import Renderer
 from sim.scenes import PRESETS, Scene, make_scene
@@ -226,17 +227,6 @@ def _imu_yaml(noise: ImuNoise) -> str:
         f"accelerometer_noise_density: {noise.accel_noise_density!r}  # [ m / s^2 / sqrt(Hz) ] (white)\n"
         f"accelerometer_random_walk: {noise.accel_random_walk!r}  # [ m / s^3 / sqrt(Hz) ] (bias diffusion)\n"
     )
-
-
-IMU_HEADER = (
-    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
-    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
-)
-GT_HEADER = (
-    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
-    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
-    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
-)
 
 
 def _write_csv(path: Path, header: str, ts: np.ndarray, values: np.ndarray) -> None:

@@ -76,6 +76,17 @@ GT_COLUMNS = (
     "b_a_RS_S_y",
     "b_a_RS_S_z",
 )
+#: The header lines EuRoC writes above ``imu0/data.csv`` and ``state_groundtruth_estimate0/data.csv`` (units in
+#: brackets); the reader matches columns by name with the units stripped, writers use these.
+IMU_HEADER = (
+    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
+)
+GT_HEADER = (
+    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
+    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+)
 #: Default ``depth0`` PNG scale: value = depth_m * DEPTH_SCALE (TUM RGB-D convention), 0 = invalid.
 DEPTH_SCALE = 5000.0
 
@@ -342,12 +353,7 @@ def load_sensor_yaml(path: str | Path) -> dict:
         EurocFormatError: missing file, invalid YAML, or not a mapping.
     """
     path = Path(path)
-    if not path.is_file():
-        raise EurocFormatError(f"{path}: missing file")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise EurocFormatError(f"{path}: cannot read ({e})") from e
+    text = _read_text(path)
     lines = text.splitlines()
     # PyYAML rejects OpenCV's "%YAML:1.0" directive (and YAML 1.0 itself): drop any leading %YAML line.
     first = next((j for j, ln in enumerate(lines) if ln.strip()), None)
@@ -487,14 +493,19 @@ def _norm_name(name: str) -> str:
     return re.sub(r"\[.*?\]", "", name).strip().lstrip("#").strip().lower()
 
 
-def _data_lines(path: Path) -> tuple[list[str], np.ndarray, list[str]]:
-    """Non-empty, non-comment lines of a CSV, their 1-based line numbers, and the comment lines."""
+def _read_text(path: Path) -> str:
+    """The text of a sequence file; a missing or unreadable file raises naming it."""
     if not path.is_file():
         raise EurocFormatError(f"{path}: missing file")
     try:
-        text = path.read_text()
+        return path.read_text()
     except (OSError, UnicodeDecodeError) as e:
         raise EurocFormatError(f"{path}: cannot read ({e})") from e
+
+
+def _data_lines(path: Path) -> tuple[list[str], np.ndarray, list[str]]:
+    """Non-empty, non-comment lines of a CSV, their 1-based line numbers, and the comment lines."""
+    text = _read_text(path)
     rows: list[str] = []
     numbers: list[int] = []
     comments: list[str] = []

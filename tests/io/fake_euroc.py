@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from runtime.geometry import R_to_quat_wxyz, so3_exp
+from runtime.io.euroc import GT_HEADER, IMU_HEADER
 
 # Real EuRoC values (shared/PITFALLS.md, "Formats").
 EUROC_INTRINSICS = [458.654, 457.296, 367.215, 248.375]
@@ -27,15 +28,6 @@ EUROC_IMU = dict(
 )
 T0 = 1403636579763555584  # first cam0 timestamp of MH_01_easy [ns]
 W, H = 752, 480
-IMU_HEADER = (
-    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
-    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
-)
-GT_HEADER = (
-    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
-    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
-    "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
-)
 
 
 def _flat(T) -> str:

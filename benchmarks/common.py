@@ -212,7 +212,7 @@ def standin_net(
     bn_batches: int = 4,
     bn_batch: int = 8,
 ):
-    """An untrained DiT whose decoder visibly depends on the code (``make_net`` in tests/export/test_export).
+    """An untrained DiT whose decoder visibly depends on the code (also the export tests' network).
 
     Untrained, the decoder is nearly constant in the code; drawing the depth head from N(0, 0.3^2) and
     re-estimating the decoder's BatchNorm statistics over ``bn_batches`` train-mode passes of random inputs

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.common import standin_net
 from export.onnx import PARITY_TOLERANCE_M, export_network
 from models import build_model
 from runtime.network import DepthNetwork, ModelError, SessionConfig
@@ -15,22 +16,9 @@ H, W = 64, 96
 
 
 def make_net(modality="grays", seed=0):
-    """A small DiT whose output depends visibly on the code.
-
-    Untrained, the decoder is nearly constant in the code; re-estimating the BatchNorm statistics on random
-    inputs and codes (train-mode decoder passes, no gradient step) restores a code effect of ~0.5 m.
-    """
-    torch.manual_seed(seed)
-    net = build_model("dit", modality, width_mult=0.25, height=H, width=W)
-    with torch.no_grad():
-        net.decoder.head.weight.normal_(0.0, 0.3)
-        for m in net.decoder.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.momentum = None  # cumulative average over the passes below
-        net.decoder.train()
-        for _ in range(4):
-            net(torch.rand(8, net.in_channels, H, W), code=torch.randn(8, net.code_dim))
-    return net.eval()
+    """A small DiT whose output depends visibly on the code (an untrained one is nearly constant in it):
+    :func:`benchmarks.common.standin_net` (depth head redrawn, decoder BatchNorm statistics re-estimated)."""
+    return standin_net(modality, height=H, width=W, width_mult=0.25, seed=seed)
 
 
 @pytest.fixture(scope="module")

@@ -363,20 +363,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
-    try:
-        bm = common.resolve_model(
-            args.model,
-            args.ckpt,
-            modality=args.modality,
-            height=args.height,
-            width=args.width,
-            width_mult=args.width_mult,
-            seed=args.seed,
-            standin_dir=args.standin_dir,
-        )
-        root = common.ensure_val_data(args.data, args.frames, seed=args.seed)
-    except (ValueError, FileNotFoundError) as e:
-        sys.exit(f"bench_jacobian: {e}")
+    bm, root = common.model_and_val_data(args, args.frames, "bench_jacobian")
     synthetic = (root / "sim_info.json").is_file()
     frames = common.val_frames(root, bm.modality, bm.height, bm.width, args.frames, seed=args.seed)
     codes = common.bench_codes(bm.code_dim, args.random_codes, seed=args.seed)

@@ -463,20 +463,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
-    try:
-        bm = common.resolve_model(
-            args.model,
-            args.ckpt,
-            modality=args.modality,
-            height=args.height,
-            width=args.width,
-            width_mult=args.width_mult,
-            seed=args.seed,
-            standin_dir=args.standin_dir,
-        )
-        root = common.ensure_val_data(args.data, 1, seed=args.seed)
-    except (ValueError, FileNotFoundError) as e:
-        sys.exit(f"bench_network: {e}")
+    bm, root = common.model_and_val_data(args, 1, "bench_network")
     synthetic = (root / "sim_info.json").is_file()
     frame = common.val_frames(root, bm.modality, bm.height, bm.width, 1, seed=args.seed)[0]
     print(f"model: {bm.description}")

@@ -442,6 +442,26 @@ def resolve_model(
 
 
 # ---------------------------------------------------------------------------------------------- data
+def model_and_val_data(args, n_val: int, who: str) -> tuple[BenchModel, Path]:
+    """The model and the validation frames a benchmark's parsed arguments name (``--model``, ``--ckpt``, the
+    stand-in's ``--modality --height --width --width-mult --seed``, ``--standin-dir``, ``--data``); an error
+    exits with one line that names the benchmark ``who``."""
+    try:
+        bm = resolve_model(
+            args.model,
+            args.ckpt,
+            modality=args.modality,
+            height=args.height,
+            width=args.width,
+            width_mult=args.width_mult,
+            seed=args.seed,
+            standin_dir=args.standin_dir,
+        )
+        return bm, ensure_val_data(args.data, n_val, seed=args.seed)
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"{who}: {e}")
+
+
 def ensure_val_data(root: str | Path | None, n_val: int, seed: int = 0, log=print) -> Path:
     """A NYU-layout root with ``val/`` frames: ``root`` if given, else synthetic frames (rendered once)."""
     from runtime.io.nyu import list_nyu_h5

@@ -111,3 +111,22 @@ def test_exact_jacobian_graph_matches_autograd(tiny, tmp_path):
         np.testing.assert_allclose(
             depth, net.decoder(torch.from_numpy(code)[None], *feats).numpy(), atol=1e-5
         )
+
+
+def test_a_missing_model_exits_with_one_line_naming_the_benchmark(tiny, tmp_path):
+    import argparse
+
+    *_, common = tiny
+    args = argparse.Namespace(
+        model=str(tmp_path / "no_model"),
+        ckpt=None,
+        modality="grays",
+        height=64,
+        width=64,
+        width_mult=0.25,
+        seed=0,
+        standin_dir=None,
+        data=None,
+    )
+    with pytest.raises(SystemExit, match=r"^bench_x: .*no_model"):
+        common.model_and_val_data(args, 1, "bench_x")

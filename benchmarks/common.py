@@ -21,6 +21,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -201,6 +202,26 @@ class BenchModel:
     width: int
     code_dim: int
     info: dict = field(default_factory=dict)
+
+
+def run_provenance(repo: Path, code_paths: tuple[str, ...] = ("runtime", "conf", "sim", "benchmarks/*.py")) -> str:
+    """Three lines saying where and on what a run happened: the machine (CPU, cores, load), the UTC date, and the
+    code (the commit of ``repo`` plus any uncommitted changes under ``code_paths``; ``?`` without git)."""
+    git = ["git", "-C", str(repo)]
+    try:
+        sha = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+        st = subprocess.run([*git, "status", "--porcelain", "--", *code_paths], capture_output=True, text=True)
+        changed = [ln[3:] for ln in st.stdout.splitlines()]
+    except OSError:  # no git
+        sha, changed = "", []
+    return "\n".join(
+        [
+            f"machine    {cpu_model()}, {os.cpu_count()} cores, load {os.getloadavg()}",
+            f"date       {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}",
+            f"code       commit {sha or '?'}"
+            + (f" + uncommitted changes in {', '.join(changed)}" if changed else ""),
+        ]
+    )
 
 
 def standin_net(

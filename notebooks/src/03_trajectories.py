@@ -19,9 +19,8 @@
 # **Budget of the committed run.** The issue's setting: 60 s sequences (1200 frames at 752x480, IMU noise), seeds 0,
 # 1, 2 of both presets, all four modes (24 runs, one after another; the fourth is the upper bound below), the shipped
 # depth model (`runtime/assets/default_model`, 128x128) and the package's default `DenseConfig` (printed below:
-# `sigma_per_b` = 8√2; the run started just before that default was committed, see the `code` line). The sequences
-# were already cached in `DATA`. The committed run took 12 min (716 s in the notebook; 2026-11-21, AMD EPYC, 2 cores
-# shared with other jobs, `nice -n 5`).
+# `sigma_per_b` = 8√2). The sequences were already cached in `DATA`. The committed run took 12 min (703 s in the
+# notebook; 2026-11-21, AMD EPYC, 2 cores shared with other jobs, `nice -n 5`).
 #
 # **The upper bound** (`dense_gt_eq13_14`): the same dense system with the rendered depth in place of the network's
 # prior (`DenseConfig.depth_source = "ground_truth"`: `D(c) = D_gt + D_net(c) − D_net(0)`, `B` = 2 cm, Laplace sigma
@@ -38,7 +37,7 @@
 # cannot fix (it sees only the motion along the wall's normal; `docs/PITFALLS.md`). The optimised codes lower the
 # keyframes' depth RMSE a little: from the prior's 0.242 m to 0.231 m on `textured` and from 0.323 m to 0.303 m on
 # `whitewall` (Eq. 13 alone: 0.240 to 0.232 m and 0.320 to 0.304 m); the sparse map points are more accurate (0.05 m)
-# but cover under 1 % of the pixels. The dense system runs at 29-41 frames/s on average against 100-117 for the
+# but cover under 1 % of the pixels. The dense system runs at 29-42 frames/s on average against 98-118 for the
 # sparse one on this shared CPU (bar: 15). With the earlier default `sigma_per_b` = 4√2
 # (`benchmarks/results/bench_dense_60s_3seeds_sigma4sqrt2.json`, identical runs otherwise) the dense ATE was 5.6 mm
 # on `textured` and 58-72 mm on `whitewall`, for a larger depth gain (0.242 to 0.215 m on `textured`).
@@ -69,7 +68,6 @@ import dataclasses
 import json
 import logging
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -87,7 +85,7 @@ import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import cpu_model
+from benchmarks.common import cpu_model, run_provenance
 from IPython.display import Image, Markdown, display
 from runtime.eval import trajectory_metrics
 from runtime.io.euroc import read_euroc
@@ -100,20 +98,7 @@ out = (REPO / OUT).resolve()
 out.mkdir(parents=True, exist_ok=True)
 t_start = time.time()
 print(f"repository {REPO}\noutputs    {out}")
-print(f"machine    {cpu_model()}, {os.cpu_count()} cores, load {os.getloadavg()}")
-print(f"date       {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-git = ["git", "-C", str(REPO)]
-try:  # which code ran: the commit, and uncommitted changes of the code the runs use
-    sha = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    st = subprocess.run(
-        [*git, "status", "--porcelain", "--", "runtime", "conf", "sim", "benchmarks/*.py"],
-        capture_output=True,
-        text=True,
-    )
-    changed = [ln[3:] for ln in st.stdout.splitlines()]
-except OSError:  # no git
-    sha, changed = "", []
-print(f"code       commit {sha or '?'}" + (f" + uncommitted changes in {', '.join(changed)}" if changed else ""))
+print(run_provenance(REPO))  # machine, date, and which code ran
 unknown = sorted(set(MODES) - set(bench_dense.MODES))
 if unknown:
     raise ValueError(f"MODES {unknown} are not in bench_dense.MODES {list(bench_dense.MODES)}")

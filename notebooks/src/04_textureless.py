@@ -24,8 +24,8 @@
 # **Budget of the committed run.** The `whitewall` sequence of `benchmarks/bench_dense.py` (60 s, 752x480 at 20 Hz,
 # IMU noise, seed 0; cached under `data/sim/bench_dense/`), both runs up to the end of the hold (33 s, 661 frames),
 # the shipped depth model (`runtime/assets/default_model`, 128x128), the package's default `DenseConfig` at the time
-# of the run (printed below; `sigma_per_b` = 8√2). The committed run took 29 s (sparse run 8 s, dense run 18 s;
-# 2026-11-21, AMD EPYC, 2 cores shared with other jobs, load 2), the sequence being cached.
+# of the run (printed below; `sigma_per_b` = 8√2). The committed run took 21 s (2026-11-21, AMD
+# EPYC, 2 cores shared with other jobs, load 0.5), the sequence being cached.
 #
 # **What the committed run shows.** From 24.9 s to the stop the frontend finds not a single corner in the keyframe
 # images (18 keyframes); both runs lose visual tracking at 25.3 s and coast on the IMU. At the stop, the sparse map
@@ -65,7 +65,6 @@ import dataclasses
 import json
 import logging
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -83,7 +82,7 @@ import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import cpu_model
+from benchmarks.common import run_provenance
 from IPython.display import Image, Markdown, display
 from runtime.dense import DenseConfig
 from runtime.dense_map import gt_depth_to_network
@@ -103,20 +102,7 @@ out = (REPO / OUT).resolve()
 out.mkdir(parents=True, exist_ok=True)
 t_start = time.time()
 print(f"repository {REPO}\noutputs    {out}")
-print(f"machine    {cpu_model()}, {os.cpu_count()} cores, load {os.getloadavg()}")
-print(f"date       {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-git = ["git", "-C", str(REPO)]
-try:  # which code ran: the commit, and uncommitted changes of the code the runs use
-    sha = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    st = subprocess.run(
-        [*git, "status", "--porcelain", "--", "runtime", "conf", "sim", "benchmarks/*.py"],
-        capture_output=True,
-        text=True,
-    )
-    changed = [ln[3:] for ln in st.stdout.splitlines()]
-except OSError:  # no git
-    sha, changed = "", []
-print(f"code       commit {sha or '?'}" + (f" + uncommitted changes in {', '.join(changed)}" if changed else ""))
+print(run_provenance(REPO))  # machine, date, and which code ran
 
 # %% [markdown]
 # ## The sequence and where the white wall is

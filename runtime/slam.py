@@ -14,8 +14,9 @@ factor,
    descriptor), old map points are re-found among the new tracks (guided by their predicted projection), LM
    runs, outliers are removed and the oldest keyframe is marginalised.
 6. After a long loss of visual tracking (a white wall), the first keyframes with texture are matched against
-   the map (descriptors + RANSAC PnP, :mod:`runtime.frontend.mapdb`): the drift accumulated while coasting is
-   corrected (4-DoF, spread over the coasted keyframes) and the matched map points re-enter the window.
+   the map (descriptors + RANSAC PnP, :mod:`runtime.frontend.mapdb`): the coasted keyframes are re-estimated
+   over their recorded IMU links between the last visual fix before the loss and the PnP pose (the backend's
+   coast bridge), and the matched map points re-enter the window.
 
 Outputs (:func:`run_sequence`): ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initialisation; poses of
 non-keyframes are stored relative to their keyframe and composed with its final estimate, as DROID-SLAM's
@@ -537,10 +538,15 @@ class SlamSystem:
     def _relocalize(self, kf: Keyframe, image: np.ndarray) -> bool:
         """Match the keyframe's features with old map points; on a PnP fix, correct the drift.
 
-        The correction is 4-DoF (yaw and translation: roll and pitch are observable from gravity). Keyframes
+        With ``reloc.bridge`` (the default) the keyframes from the last one tracked before the loss to this one
+        are re-estimated over their IMU links, held at both ends (:meth:`SlidingWindowBackend.bridge`): the
+        velocity error at the loss and the biases that made the drift are estimated instead of assumed. Without
+        it, or when the inertial chain is broken (an IMU gap, a loss longer than the backend's archive), a
+        4-DoF correction (yaw and translation: roll and pitch are observable from gravity) is spread: keyframes
         since the loss get the fraction ``((t - t_lost) / (t_resumed - t_lost)) ** drift_exponent`` of it (the
         dead-reckoning error starts flat and grows about quadratically: bias and tilt errors integrated
-        twice), those after tracking resumed the whole of it; the matched map points re-enter the window.
+        twice), those after tracking resumed the whole of it. The 4-DoF correction also gives the bridge its
+        starting point. The matched map points re-enter the window.
         """
         c = self.cfg.reloc
         pend = self.reloc_pending
@@ -548,8 +554,7 @@ class SlamSystem:
         if pend["attempts"] > c.max_attempts:
             self.event(
                 kf.ts,
-                f"relocalisation gave up after {c.max_attempts} keyframes: continuing on the "
-                "drifted estimate",
+                f"relocalisation gave up after {c.max_attempts} keyframes: continuing on the drifted estimate",
             )
             self.reloc_pending = None
             return False
@@ -586,6 +591,7 @@ class SlamSystem:
         Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
         t = T_new[:3, 3] - Rz @ kf.T_w_b[:3, 3]
         shift = float(np.linalg.norm(T_new[:3, 3] - kf.T_w_b[:3, 3]))
+        bridged = False
         if shift >= c.min_correction_m:
             t0, t1 = pend["since"], pend["regained"]
 
@@ -601,8 +607,30 @@ class SlamSystem:
                 return C
 
             del t
-            self.backend.apply_correction(correction, t0)
-            self.T_cur = correction(kf.ts) @ self.T_cur
+            corr = None
+            if c.bridge:
+                corr = self.backend.bridge(
+                    t0 - int(c.bridge_anchor_lead_s * 1e9),
+                    kf.kf_id,
+                    T_new,
+                    np.array([c.bridge_fix_rot_sigma, c.bridge_fix_pos_sigma]),
+                    np.array(
+                        [
+                            c.bridge_anchor_rot_sigma,
+                            c.bridge_anchor_pos_sigma,
+                            c.bridge_anchor_vel_sigma,
+                            c.bridge_anchor_acc_bias_sigma,
+                            c.bridge_anchor_gyro_bias_sigma,
+                        ]
+                    ),
+                    init=correction,
+                )
+            bridged = corr is not None
+            if bridged:
+                self.T_cur = corr[kf.kf_id] @ self.T_cur
+            else:
+                self.backend.apply_correction(correction, t0)
+                self.T_cur = correction(kf.ts) @ self.T_cur
 
         # re-activate the matched map points; their tracks take the map point's id
         m_ids, t_ids = ids_c[ti][inl], feats.ids[fi][inl]
@@ -621,13 +649,15 @@ class SlamSystem:
                 "drift_m": shift,
                 "yaw_deg": float(np.degrees(yaw)),
                 "inliers": n_in,
+                "bridged": bridged,
             }
         )
         self.event(
             kf.ts,
             f"relocalised against {n_in} map points ({qi.size} matches) after "
             f"{(pend['regained'] - pend['since']) * NS:.1f} s "
-            f"without visual tracking: drift correction {shift:.3f} m, yaw {np.degrees(yaw):.2f} deg",
+            f"without visual tracking: drift correction {shift:.3f} m, yaw {np.degrees(yaw):.2f} deg"
+            + (" (coast re-estimated over its IMU links)" if bridged else " (spread over the coast)"),
         )
         self.reloc_pending = None
         return True

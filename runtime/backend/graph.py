@@ -23,6 +23,10 @@ observations with the landmarks held, ``marginal_visual_fix``, see
 IMU link and zero-motion factors, giving a Gaussian prior on the next keyframe's state; its reprojection
 factors
 stay in the window through the anchored pose.
+
+Marginalised keyframes of the last ``archive_s`` seconds keep their final state and the factors that linked
+them (IMU, zero motion) in an archive: after a long loss of visual tracking, :meth:`SlidingWindowBackend.bridge`
+re-estimates the coasted stretch over those links between the last visual fix and a relocalisation.
 """
 
 from __future__ import annotations
@@ -77,6 +81,7 @@ class BackendConfig:
     gap_vel_sigma: float = 0.3  # m/s, velocity prior of a keyframe after an IMU gap
     gap_rot_sigma: float = 0.1  # rad, pose prior of a keyframe after an IMU gap (around the propagated pose)
     gap_pos_sigma: float = 0.3  # m
+    archive_s: float = 60.0  # s, marginalised keyframes' states and inertial links kept for a coast bridge
 
 
 @dataclass
@@ -169,6 +174,10 @@ class SlidingWindowBackend:
         self.vel_priors: dict[int, object] = {}  # keyed by the keyframe
         self.prior_factors: list = []  # on the oldest active keyframe
         self.last_stats: dict = {}
+        # marginalised keyframes (the last ``archive_s`` seconds) for :meth:`bridge`: state and, per keyframe,
+        # the factors that linked it to its predecessor (IMU, zero motion) and its zero-velocity prior
+        self.archived_states: dict[int, Keyframe] = {}
+        self.archived_links: dict[int, list] = {}
 
     @property
     def initialized(self) -> bool:
@@ -543,12 +552,16 @@ class SlidingWindowBackend:
             window_prior = self._visual_prior(o) if self.cfg.marginal_visual_fix else None
             for f in window_prior if window_prior is not None else self.prior_factors:
                 fg.push_back(f)
-            for f in self.imu_factors.pop(n):
-                fg.push_back(f)
+            link = list(self.imu_factors.pop(n))
             if n in self.still_between:
-                fg.push_back(self.still_between.pop(n))
+                link.append(self.still_between.pop(n))
+            for f in link:
+                fg.push_back(f)
+            self.archived_links[n] = link
             if o in self.vel_priors:
-                fg.push_back(self.vel_priors.pop(o))
+                vp = self.vel_priors.pop(o)
+                fg.push_back(vp)
+                self.archived_links.setdefault(o, []).append(vp)
             vals = gtsam.Values()
             for k in (o, n):
                 kf = self.keyframes[k]
@@ -572,6 +585,10 @@ class SlidingWindowBackend:
             ]
             self.active.pop(0)
             dropped.append(o)
+            ko = self.keyframes[o]
+            self.archived_states[o] = Keyframe(
+                o, ko.ts, ko.frame_idx, ko.T_w_b.copy(), ko.v_w.copy(), ko.bias.copy()
+            )
             if self.cfg.anchor_old_observations:
                 self.anchors.append(o)
             else:
@@ -580,6 +597,10 @@ class SlidingWindowBackend:
             self._forget_keyframe(self.anchors.pop(0))
         if dropped:
             self._freeze_landmarks()
+            t_keep = self.latest.ts - int(self.cfg.archive_s * 1e9)
+            for k in [k for k, a in self.archived_states.items() if a.ts < t_keep]:
+                del self.archived_states[k]
+                self.archived_links.pop(k, None)
         return dropped
 
     def _visual_prior(self, o: int):
@@ -659,16 +680,13 @@ class SlidingWindowBackend:
         marginal prior on the oldest keyframe (linearised at the old state) is replaced by priors around the
         corrected state: roll/pitch and biases keep their confidence, position, yaw and velocity become loose.
         """
-        import gtsam
-
-        X, V, B, _, _ = _sym()
         corr = {}
         for k, (ts, T) in list(self.history.items()):
             if ts >= t_from:
                 C = correction(ts)
                 corr[k] = C
                 self.history[k] = (ts, C @ T)
-        for kf in self.keyframes.values():
+        for kf in list(self.keyframes.values()) + list(self.archived_states.values()):
             C = corr.get(kf.kf_id)
             if C is not None:
                 kf.T_w_b = C @ kf.T_w_b
@@ -678,6 +696,183 @@ class SlidingWindowBackend:
                 C = corr.get(max(lm.obs))
                 if C is not None:
                     lm.X_w = lm.X_w @ C[:3, :3].T + C[:3, 3]
+        self._loose_oldest_prior()
+
+    def _chain(self, t_from: int, kf_id: int) -> list[Keyframe] | None:
+        """Keyframes from the last one at or before ``t_from`` to ``kf_id`` (archived, then active), or None
+        when the archive does not reach back that far or an IMU gap broke the inertial chain."""
+        import gtsam
+
+        states = {**self.archived_states, **{k: self.keyframes[k] for k in self.active}}
+        ids = sorted(k for k in states if k <= kf_id)
+        before = [k for k in ids if states[k].ts <= t_from]
+        if not before or kf_id not in states:
+            return None
+        chain = [states[k] for k in ids if k >= before[-1]]
+        for kf in chain[1:]:
+            if not any(isinstance(f, gtsam.CombinedImuFactor) for f in self._link(kf.kf_id)):
+                return None
+        return chain
+
+    def _link(self, k: int) -> list:
+        """The factors between keyframe ``k`` and its predecessor (and ``k``'s zero-velocity prior)."""
+        if k in self.archived_links:
+            return self.archived_links[k]
+        out = list(self.imu_factors.get(k, ()))
+        for d in (self.still_between, self.vel_priors):
+            if k in d:
+                out.append(d[k])
+        return out
+
+    def bridge(
+        self,
+        t_from: int,
+        kf_id: int,
+        T_fix: np.ndarray,
+        fix_sigmas: np.ndarray,
+        anchor_sigmas: np.ndarray,
+        init=None,
+    ) -> dict[int, np.ndarray] | None:
+        """Re-estimate a coasted stretch between two visual fixes (the relocalisation's coast bridge).
+
+        Smooths the keyframe states from the last keyframe at or before ``t_from`` (the anchor, the last one
+        tracked visually before the loss) to ``kf_id`` (the relocalised keyframe) over their recorded IMU
+        links: a prior on the anchor's state (``anchor_sigmas``: rotation [rad], position [m], velocity
+        [m/s], accelerometer bias [m/s^2], gyroscope bias [rad/s]), the PnP pose ``T_fix`` of ``kf_id``
+        (``fix_sigmas``: rotation [rad], position [m], body frame). Velocities and biases are re-estimated
+        with the poses, so a systematic drift (a velocity error at the loss, a bias) is explained rather than
+        spread. The window, the archive and ``history`` take the smoothed states; landmarks follow their newest
+        observing keyframe; the marginal prior on the oldest active keyframe, when it moved, becomes the
+        anchor prior carried over the archived links (so the window's own links and the fix are not counted
+        twice).
+
+        Args:
+            init: optional ``correction(ts) -> (4, 4)`` applied to the current estimates to start LM from.
+
+        Returns:
+            ``kf_id -> (4, 4)`` world-frame corrections ``T_new T_old^-1`` of the moved keyframes, or None when
+            there is no inertial chain to smooth (the caller then spreads the correction instead).
+        """
+        import gtsam
+
+        X, V, B, _, _ = _sym()
+        chain = self._chain(t_from, kf_id)
+        if chain is None or len(chain) < 2:
+            return None
+        anchor = chain[0]
+        sa = np.asarray(anchor_sigmas, np.float64)
+        anchor_priors = [
+            gtsam.PriorFactorPose3(
+                X(anchor.kf_id),
+                to_pose3(anchor.T_w_b),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([sa[0]] * 3 + [sa[1]] * 3)),
+            ),
+            gtsam.PriorFactorVector(V(anchor.kf_id), anchor.v_w, gtsam.noiseModel.Isotropic.Sigma(3, sa[2])),
+            gtsam.PriorFactorConstantBias(
+                B(anchor.kf_id),
+                make_bias(anchor.bias),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([sa[3]] * 3 + [sa[4]] * 3)),
+            ),
+        ]
+        graph = gtsam.NonlinearFactorGraph()
+        for f in anchor_priors:
+            graph.push_back(f)
+        for kf in chain[1:]:
+            for f in self._link(kf.kf_id):
+                graph.push_back(f)
+        sf = np.asarray(fix_sigmas, np.float64)
+        graph.push_back(
+            gtsam.PriorFactorPose3(
+                X(kf_id),
+                to_pose3(T_fix),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([sf[0]] * 3 + [sf[1]] * 3)),
+            )
+        )
+        values = gtsam.Values()
+        for kf in chain:
+            C = init(kf.ts) if init is not None and kf is not anchor else np.eye(4)
+            values.insert(X(kf.kf_id), to_pose3(C @ kf.T_w_b))
+            values.insert(V(kf.kf_id), C[:3, :3] @ kf.v_w)
+            values.insert(B(kf.kf_id), make_bias(kf.bias))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(50)
+        params.setRelativeErrorTol(1e-6)
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        except RuntimeError as e:
+            log.warning("backend: coast bridge failed (%s)", str(e).splitlines()[0][:200])
+            return None
+
+        corr = {}
+        for kf in chain:
+            k = kf.kf_id
+            T = from_pose3(result.atPose3(X(k)))
+            corr[k] = T @ inv_T(kf.T_w_b)
+            v = np.asarray(result.atVector(V(k)), dtype=np.float64).copy()
+            b = result.atConstantBias(B(k))
+            bias = np.concatenate([b.accelerometer(), b.gyroscope()])
+            for target in (self.keyframes.get(k), self.archived_states.get(k)):
+                if target is not None:
+                    target.T_w_b, target.v_w, target.bias = T.copy(), v.copy(), bias.copy()
+            if k in self.history:
+                self.history[k] = (kf.ts, T.copy())
+        for lm in self.landmarks.values():
+            if lm.map_prior is None and lm.obs:
+                C = corr.get(max(lm.obs))
+                if C is not None:
+                    lm.X_w = lm.X_w @ C[:3, :3].T + C[:3, 3]
+        o = self.active[0]
+        if o in corr and o != anchor.kf_id:
+            self._carried_prior(chain, anchor_priors, result)
+        return corr
+
+    def _carried_prior(self, chain: list[Keyframe], anchor_priors: list, result) -> None:
+        """The oldest active keyframe's marginal prior: the anchor prior and the archived links up to it,
+        linearised at the bridge's ``result`` (the window's own links and the fix are not in it)."""
+        import gtsam
+
+        X, V, B, _, _ = _sym()
+        o = self.active[0]
+        fg = gtsam.NonlinearFactorGraph()
+        for f in anchor_priors:
+            fg.push_back(f)
+        vals = gtsam.Values()
+        elim = gtsam.Ordering()
+        for kf in chain:
+            k = kf.kf_id
+            if k > o:
+                break
+            if kf is not chain[0]:
+                for f in self.archived_links.get(k, ()):
+                    fg.push_back(f)
+            for key in (X(k), V(k), B(k)):
+                if k != o:
+                    elim.push_back(key)
+            vals.insert(X(k), result.atPose3(X(k)))
+            vals.insert(V(k), result.atVector(V(k)))
+            vals.insert(B(k), result.atConstantBias(B(k)))
+        lin_pt = gtsam.Values()
+        lin_pt.insert(X(o), result.atPose3(X(o)))
+        lin_pt.insert(V(o), result.atVector(V(o)))
+        lin_pt.insert(B(o), result.atConstantBias(B(o)))
+        try:
+            _, remaining = fg.linearize(vals).eliminatePartialSequential(elim)
+        except RuntimeError as e:
+            log.info("backend: carried prior unavailable (%s); loose priors", str(e).splitlines()[0][:120])
+            self._loose_oldest_prior()
+            return
+        self.prior_factors = [
+            gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
+            for i in range(remaining.size())
+            if remaining.at(i) is not None
+        ]
+
+    def _loose_oldest_prior(self) -> None:
+        """Priors around the oldest active keyframe's current state: roll/pitch and biases keep their
+        confidence, position, yaw and velocity are loose (after a relocalisation moved it)."""
+        import gtsam
+
+        X, V, B, _, _ = _sym()
         c = self.cfg
         o = self.keyframes[self.active[0]]
         self.prior_factors = [

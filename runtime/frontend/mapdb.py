@@ -37,6 +37,15 @@ class RelocConfig:
     map_point_sigma: float = 0.02  # m, prior on a re-activated map point
     min_correction_m: float = 0.0  # corrections smaller than this are not applied (0: always)
     drift_exponent: float = 2.0  # share of the correction given to coasted keyframes: (elapsed fraction)^this
+    bridge: bool = True  # re-estimate the coast over its IMU links between the fixes (else: spread)
+    bridge_fix_rot_sigma: float = 0.01  # rad, the PnP pose of the relocalised keyframe
+    bridge_fix_pos_sigma: float = 0.03  # m
+    bridge_anchor_rot_sigma: float = 0.005  # rad, the last visually tracked keyframe before the loss
+    bridge_anchor_lead_s: float = 0.0  # s, the anchor is the last keyframe this long before the loss
+    bridge_anchor_pos_sigma: float = 0.01  # m
+    bridge_anchor_vel_sigma: float = 0.05  # m/s
+    bridge_anchor_acc_bias_sigma: float = 0.05  # m/s^2
+    bridge_anchor_gyro_bias_sigma: float = 0.002  # rad/s
     guided: bool = True  # at every keyframe, re-find map points near their predicted projection
     guided_radius_px: float = 12.0
     guided_max_hamming: int = 50

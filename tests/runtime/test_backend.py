@@ -227,3 +227,62 @@ def test_custom_factor_jacobians_match_numerical_and_shapes_are_checked():
     fb = custom_factor(gtsam.noiseModel.Unit.Create(3), [X(0), L(0)], bad, dims=[6, 3])
     with pytest.raises(Exception, match="shape"):
         fb.linearize(vals)
+
+
+def _coasted_backend(n_kf=14, window=4, drift=0.4, seed=3):
+    """A window that coasted on exact IMU links from keyframe 2 on, its estimates drifting quadratically in
+    time (position) and linearly (velocity), marginalising as it went (no landmarks: a blank wall)."""
+    sc = Scenario(n_kf=n_kf, dt_kf=0.3, seed=seed)
+    be = SlidingWindowBackend(EUROC_CAM.intrinsics, EUROC_T_BS, sc.params, BackendConfig(window_size=window))
+    be.initialize(sc.kf(0))
+    d = np.array([1.0, -0.6, 0.3]) * drift
+    span = sc.t[-1] - sc.t[2]
+    for i in range(1, n_kf):
+        a = max(sc.t[i] - sc.t[2], 0.0) / span
+        T = sc.T[i].copy()
+        T[:3, 3] += d * a**2
+        be.add_keyframe(sc.kf(i, T, sc.v[i] + 2 * d * a / span), sc.pim(i - 1, i))
+        be.marginalize()
+    return sc, be
+
+
+def test_coast_bridge_recovers_the_coasted_states_from_the_imu_links():
+    sc, be = _coasted_backend()
+    last = len(sc.t) - 1
+    assert sorted(be.archived_states) == list(range(last - 3))
+    assert be.active == list(range(last - 3, last + 1))
+    before = [pose_error(be.history[i][1], sc.T[i])[0] for i in range(len(sc.t))]
+    assert max(before) > 0.35
+    corr = be.bridge(
+        int(sc.t[2] * 1e9) + 1,
+        last,
+        sc.T[last],
+        np.array([1e-3, 1e-3]),
+        np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3]),
+    )
+    assert sorted(corr) == list(range(2, last + 1))  # from the anchor (the last keyframe before the loss)
+    for i in range(len(sc.t)):
+        T = be.history[i][1]
+        assert pose_error(T, sc.T[i])[0] < 0.01, (i, pose_error(T, sc.T[i]))  # exact IMU: the path itself
+        state = be.keyframes[i] if i in be.active else be.archived_states[i]
+        assert np.allclose(state.T_w_b, T)
+        assert np.linalg.norm(state.v_w - sc.v[i]) < 0.03, i
+    # the window's marginal prior now comes from the anchor over the archived links, at the bridged state
+    assert all(isinstance(f, gtsam.LinearContainerFactor) for f in be.prior_factors)
+    st = be.optimize()
+    assert st["ok"]
+    for i in be.active:
+        assert pose_error(be.keyframes[i].T_w_b, sc.T[i])[0] < 0.01, i
+
+
+def test_coast_bridge_declines_without_an_inertial_chain():
+    sc, be = _coasted_backend()
+    last = len(sc.t) - 1
+    sig2, sig5 = np.array([1e-3, 1e-3]), np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3])
+    # the archive does not reach back before the loss
+    assert be.bridge(-1, last, sc.T[last], sig2, sig5) is None
+    gap = Keyframe(last + 1, int((sc.t[last] + 0.3) * 1e9), last + 1, sc.T[last], sc.v[last], np.zeros(6))
+    be.add_keyframe(gap, None)  # an IMU gap: no inertial link
+    before = {k: T.copy() for k, (_, T) in be.history.items()}
+    assert be.bridge(int(sc.t[2] * 1e9) + 1, last + 1, sc.T[last], sig2, sig5) is None
+    assert all(np.array_equal(be.history[k][1], before[k]) for k in before)  # nothing moved

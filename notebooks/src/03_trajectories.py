@@ -19,7 +19,7 @@
 # **Budget of the committed run.** The issue's setting: 60 s sequences (1200 frames at 752x480, IMU noise), seeds 0,
 # 1, 2 of both presets, all four modes (24 runs, one after another; the fourth is the upper bound below), the shipped
 # depth model (`runtime/assets/default_model`, 128x128) and the package's default `DenseConfig` (printed below:
-# `sigma_per_b` = 8√2). The sequences were already cached in `DATA`. The committed run took 12 min (703 s in the
+# `sigma_per_b` = 8√2). The sequences were already cached in `DATA`. The committed run took 11 min (664 s in the
 # notebook; 2026-11-21, AMD EPYC, 2 cores shared with other jobs, `nice -n 5`).
 #
 # **The upper bound** (`dense_gt_eq13_14`): the same dense system with the rendered depth in place of the network's
@@ -30,17 +30,20 @@
 # (Eq. 13) and 4.1 ± 1.9 mm (Eq. 13 + 14) against 4.3 ± 1.6 mm (per seed 2.2 vs 2.0, 6.0-6.7 vs 5.7, 3.4-3.7 vs 5.1
 # mm), which meets the issue's bar within run-to-run noise (about 1 mm on seed 1); with the rendered depth it is 3.8
 # mm (1.5 / 3.9 / 6.1), so the geometry of the residuals is right and the network's depth (RMSE 0.24 m) limits the
-# gain. On `whitewall` dense is worse: 35 mm (Eq. 13) and 38 mm (Eq. 13 + 14) against 30 mm, so the bar (10 % better
-# than sparse) is not met, and the rendered depth does not meet it either (73 mm). Every whitewall run loses visual
-# tracking in front of the bare wall, coasts on the IMU for about 10 s and is relocalised against the map; the ATE
-# is set by that coast and by how the relocalisation's correction is spread over it, which depth on a blank plane
-# cannot fix (it sees only the motion along the wall's normal; `docs/PITFALLS.md`). The optimised codes lower the
-# keyframes' depth RMSE a little: from the prior's 0.242 m to 0.231 m on `textured` and from 0.323 m to 0.303 m on
-# `whitewall` (Eq. 13 alone: 0.240 to 0.232 m and 0.320 to 0.304 m); the sparse map points are more accurate (0.05 m)
-# but cover under 1 % of the pixels. The dense system runs at 29-42 frames/s on average against 98-118 for the
-# sparse one on this shared CPU (bar: 15). With the earlier default `sigma_per_b` = 4√2
-# (`benchmarks/results/bench_dense_60s_3seeds_sigma4sqrt2.json`, identical runs otherwise) the dense ATE was 5.6 mm
-# on `textured` and 58-72 mm on `whitewall`, for a larger depth gain (0.242 to 0.215 m on `textured`).
+# gain. On `whitewall` dense is worse: 20 mm (Eq. 13) and 21 mm (Eq. 13 + 14) against 13 mm, so the bar (10 % better
+# than sparse) is not met, and the rendered depth does not meet it either (18 mm). Every whitewall run loses visual
+# tracking in front of the bare wall, coasts on the IMU for about 10 s and is relocalised against the map, where the
+# coasted keyframes are re-estimated over their IMU links between the last visual fix and the relocalisation
+# (`reloc.bridge`; before it, the correction was spread over the coast and sparse whitewall was at 30 mm,
+# `benchmarks/results/bench_dense_60s_3seeds_spread.json`). The ATE is still set by that coast: how well the state
+# at the loss (velocity, bias) is known decides the bridge, and the dense runs' coast errors lie along the wall,
+# which depth on a blank plane cannot see (it sees only the motion along the wall's normal; `docs/PITFALLS.md`). The
+# optimised codes lower the keyframes' depth RMSE a little: from the prior's 0.242 m to 0.231 m on `textured` and
+# from 0.322 m to 0.302 m on `whitewall` (Eq. 13 alone: 0.240 to 0.232 m and 0.320 to 0.305 m); the sparse map
+# points are more accurate (0.05 m) but cover under 1 % of the pixels. The dense system runs at 32-44 frames/s on
+# average against 114-119 for the sparse one on this shared CPU (bar: 15). With the earlier default
+# `sigma_per_b` = 4√2 (`benchmarks/results/bench_dense_60s_3seeds_sigma4sqrt2.json`, without the bridge) the dense ATE
+# was 5.6 mm on `textured` and 58-72 mm on `whitewall`, for a larger depth gain (0.242 to 0.215 m on `textured`).
 #
 # Re-run (from the repository root, venv active; writes under `OUT`, here `outputs/notebooks/03_trajectories/`;
 # the sequences are cached in `DATA`, rendering one 60 s sequence takes about 2 minutes):

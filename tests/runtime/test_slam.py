@@ -133,6 +133,13 @@ def test_runtime_presets_match_the_typed_config():
     d = yaml.safe_load((conf / "default.yaml").read_text())
     assert dataclasses.asdict(SlamConfig.from_dict(d)) == dataclasses.asdict(SlamConfig())  # same values
     assert set(d) == set(dataclasses.asdict(SlamConfig()))  # and every key spelled out
+
+    def keys(x, path=""):
+        if not isinstance(x, dict):
+            return {path}
+        return {k for name, v in x.items() for k in keys(v, f"{path}.{name}")}
+
+    assert keys(d) == keys(dataclasses.asdict(SlamConfig()))  # nested sections too
     fast = yaml.safe_load((conf / "fast.yaml").read_text())
-    assert set(fast) == set(d)  # presets share the keys
+    assert keys(fast) == keys(d)  # presets share the keys
     SlamConfig.from_dict(fast)

@@ -588,8 +588,6 @@ class SlamSystem:
         T_new = T_w_c @ self.T_c_b
         dR = T_new[:3, :3] @ kf.T_w_b[:3, :3].T
         yaw = float(np.arctan2(dR[1, 0], dR[0, 0]))
-        Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
-        t = T_new[:3, 3] - Rz @ kf.T_w_b[:3, 3]
         shift = float(np.linalg.norm(T_new[:3, 3] - kf.T_w_b[:3, 3]))
         bridged = False
         if shift >= c.min_correction_m:
@@ -606,7 +604,6 @@ class SlamSystem:
                 )
                 return C
 
-            del t
             corr = None
             if c.bridge:
                 corr = self.backend.bridge(

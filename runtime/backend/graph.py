@@ -51,6 +51,40 @@ def _sym():
     return X, V, B, L, C
 
 
+def _insert_state(values, k: int, T_w_b: np.ndarray, v_w: np.ndarray, bias: np.ndarray) -> None:
+    """Insert keyframe ``k``'s ``X, V, B`` (pose (4, 4), velocity (3,), bias (6,)) into ``values``."""
+    X, V, B, _, _ = _sym()
+    values.insert(X(k), to_pose3(T_w_b))
+    values.insert(V(k), np.asarray(v_w, dtype=np.float64))
+    values.insert(B(k), make_bias(bias))
+
+
+def _state_priors(k: int, T_w_b, v_w, bias, pose_noise, vel_sigma: float, bias_sigmas) -> list:
+    """Prior factors on keyframe ``k``'s pose (noise model ``pose_noise``), velocity (isotropic ``vel_sigma``)
+    and bias (diagonal ``bias_sigmas``: 3 accelerometer then 3 gyroscope)."""
+    import gtsam
+
+    X, V, B, _, _ = _sym()
+    return [
+        gtsam.PriorFactorPose3(X(k), to_pose3(T_w_b), pose_noise),
+        gtsam.PriorFactorVector(V(k), v_w, gtsam.noiseModel.Isotropic.Sigma(3, float(vel_sigma))),
+        gtsam.PriorFactorConstantBias(
+            B(k), make_bias(bias), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(bias_sigmas, np.float64))
+        ),
+    ]
+
+
+def _linear_prior(remaining, lin_pt) -> list:
+    """The factors left by a partial elimination, as nonlinear factors linearised at ``lin_pt``."""
+    import gtsam
+
+    return [
+        gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
+        for i in range(remaining.size())
+        if remaining.at(i) is not None
+    ]
+
+
 @dataclass
 class BackendConfig:
     """Sliding-window backend settings."""
@@ -197,9 +231,6 @@ class SlidingWindowBackend:
 
         Archived keyframe poses and map points of earlier windows are kept.
         """
-        import gtsam
-
-        X, V, B, _, _ = _sym()
         self._clear_window()
         c = self.cfg
         self._insert_kf(kf)
@@ -208,19 +239,15 @@ class SlidingWindowBackend:
             np.array([c.prior_roll_pitch_sigma, c.prior_roll_pitch_sigma, c.prior_yaw_sigma]),
             c.prior_pos_sigma,
         )
-        self.prior_factors = [
-            gtsam.PriorFactorPose3(X(kf.kf_id), to_pose3(kf.T_w_b), pose_noise),
-            gtsam.PriorFactorVector(
-                V(kf.kf_id), kf.v_w, gtsam.noiseModel.Isotropic.Sigma(3, c.prior_vel_sigma)
-            ),
-            gtsam.PriorFactorConstantBias(
-                B(kf.kf_id),
-                make_bias(kf.bias),
-                gtsam.noiseModel.Diagonal.Sigmas(
-                    np.array([c.prior_acc_bias_sigma] * 3 + [c.prior_gyro_bias_sigma] * 3)
-                ),
-            ),
-        ]
+        self.prior_factors = _state_priors(
+            kf.kf_id,
+            kf.T_w_b,
+            kf.v_w,
+            kf.bias,
+            pose_noise,
+            c.prior_vel_sigma,
+            [c.prior_acc_bias_sigma] * 3 + [c.prior_gyro_bias_sigma] * 3,
+        )
 
     def _insert_kf(self, kf: Keyframe) -> None:
         self.keyframes[kf.kf_id] = kf
@@ -363,14 +390,12 @@ class SlidingWindowBackend:
     def _build(self):
         import gtsam
 
-        X, V, B, L, _ = _sym()
+        X, _, _, L, _ = _sym()
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         for k in self.active:
             kf = self.keyframes[k]
-            values.insert(X(k), to_pose3(kf.T_w_b))
-            values.insert(V(k), np.asarray(kf.v_w, dtype=np.float64))
-            values.insert(B(k), make_bias(kf.bias))
+            _insert_state(values, k, kf.T_w_b, kf.v_w, kf.bias)
         for f in self.prior_factors:
             graph.push_back(f)
         links = {}  # inter-keyframe factors (IMU, zero motion), kept apart for the window marginal
@@ -565,9 +590,7 @@ class SlidingWindowBackend:
             vals = gtsam.Values()
             for k in (o, n):
                 kf = self.keyframes[k]
-                vals.insert(X(k), to_pose3(kf.T_w_b))
-                vals.insert(V(k), np.asarray(kf.v_w, dtype=np.float64))
-                vals.insert(B(k), make_bias(kf.bias))
+                _insert_state(vals, k, kf.T_w_b, kf.v_w, kf.bias)
             lin = fg.linearize(vals)
             ordering = gtsam.Ordering()
             for key in (X(o), V(o), B(o)):
@@ -575,14 +598,8 @@ class SlidingWindowBackend:
             _, remaining = lin.eliminatePartialSequential(ordering)
             lin_pt = gtsam.Values()
             kfn = self.keyframes[n]
-            lin_pt.insert(X(n), to_pose3(kfn.T_w_b))
-            lin_pt.insert(V(n), np.asarray(kfn.v_w, dtype=np.float64))
-            lin_pt.insert(B(n), make_bias(kfn.bias))
-            self.prior_factors = [
-                gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
-                for i in range(remaining.size())
-                if remaining.at(i) is not None
-            ]
+            _insert_state(lin_pt, n, kfn.T_w_b, kfn.v_w, kfn.bias)
+            self.prior_factors = _linear_prior(remaining, lin_pt)
             self.active.pop(0)
             dropped.append(o)
             ko = self.keyframes[o]
@@ -617,16 +634,14 @@ class SlidingWindowBackend:
         """
         import gtsam
 
-        X, V, B, L, _ = _sym()
+        _, _, _, L, _ = _sym()
         obs = [j for j in self.kf_obs.get(o, ()) if j in self.landmarks and o in self.landmarks[j].factors]
         if len(obs) < 6:
             return None
         kf = self.keyframes[o]
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
-        values.insert(X(o), to_pose3(kf.T_w_b))
-        values.insert(V(o), np.asarray(kf.v_w, dtype=np.float64))
-        values.insert(B(o), make_bias(kf.bias))
+        _insert_state(values, o, kf.T_w_b, kf.v_w, kf.bias)
         for f in self.prior_factors:
             graph.push_back(f)
         fix = gtsam.noiseModel.Isotropic.Sigma(3, self.cfg.visual_fix_sigma)
@@ -643,14 +658,8 @@ class SlidingWindowBackend:
             log.info("backend: visual fix of keyframe %d unavailable (%s)", o, str(e).splitlines()[0][:120])
             return None
         lin_pt = gtsam.Values()
-        lin_pt.insert(X(o), to_pose3(kf.T_w_b))
-        lin_pt.insert(V(o), np.asarray(kf.v_w, dtype=np.float64))
-        lin_pt.insert(B(o), make_bias(kf.bias))
-        return [
-            gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
-            for i in range(remaining.size())
-            if remaining.at(i) is not None
-        ]
+        _insert_state(lin_pt, o, kf.T_w_b, kf.v_w, kf.bias)
+        return _linear_prior(remaining, lin_pt)
 
     # ------------------------------------------------------------------ relocalisation
     def reactivate_landmarks(
@@ -691,12 +700,17 @@ class SlidingWindowBackend:
             if C is not None:
                 kf.T_w_b = C @ kf.T_w_b
                 kf.v_w = C[:3, :3] @ kf.v_w
+        self._move_landmarks(corr)
+        self._loose_oldest_prior()
+
+    def _move_landmarks(self, corr: dict[int, np.ndarray]) -> None:
+        """Landmarks follow the world-frame correction ``corr[k]`` of their newest observing keyframe
+        (re-activated map points stay)."""
         for lm in self.landmarks.values():
             if lm.map_prior is None and lm.obs:
                 C = corr.get(max(lm.obs))
                 if C is not None:
                     lm.X_w = lm.X_w @ C[:3, :3].T + C[:3, 3]
-        self._loose_oldest_prior()
 
     def _chain(self, t_from: int, kf_id: int) -> list[Keyframe] | None:
         """Keyframes from the last one at or before ``t_from`` to ``kf_id`` (archived, then active), or None
@@ -761,19 +775,15 @@ class SlidingWindowBackend:
             return None
         anchor = chain[0]
         sa = np.asarray(anchor_sigmas, np.float64)
-        anchor_priors = [
-            gtsam.PriorFactorPose3(
-                X(anchor.kf_id),
-                to_pose3(anchor.T_w_b),
-                gtsam.noiseModel.Diagonal.Sigmas(np.array([sa[0]] * 3 + [sa[1]] * 3)),
-            ),
-            gtsam.PriorFactorVector(V(anchor.kf_id), anchor.v_w, gtsam.noiseModel.Isotropic.Sigma(3, sa[2])),
-            gtsam.PriorFactorConstantBias(
-                B(anchor.kf_id),
-                make_bias(anchor.bias),
-                gtsam.noiseModel.Diagonal.Sigmas(np.array([sa[3]] * 3 + [sa[4]] * 3)),
-            ),
-        ]
+        anchor_priors = _state_priors(
+            anchor.kf_id,
+            anchor.T_w_b,
+            anchor.v_w,
+            anchor.bias,
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([sa[0]] * 3 + [sa[1]] * 3)),
+            sa[2],
+            [sa[3]] * 3 + [sa[4]] * 3,
+        )
         graph = gtsam.NonlinearFactorGraph()
         for f in anchor_priors:
             graph.push_back(f)
@@ -791,9 +801,7 @@ class SlidingWindowBackend:
         values = gtsam.Values()
         for kf in chain:
             C = init(kf.ts) if init is not None and kf is not anchor else np.eye(4)
-            values.insert(X(kf.kf_id), to_pose3(C @ kf.T_w_b))
-            values.insert(V(kf.kf_id), C[:3, :3] @ kf.v_w)
-            values.insert(B(kf.kf_id), make_bias(kf.bias))
+            _insert_state(values, kf.kf_id, C @ kf.T_w_b, C[:3, :3] @ kf.v_w, kf.bias)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         params.setRelativeErrorTol(1e-6)
@@ -816,19 +824,15 @@ class SlidingWindowBackend:
                     target.T_w_b, target.v_w, target.bias = T.copy(), v.copy(), bias.copy()
             if k in self.history:
                 self.history[k] = (kf.ts, T.copy())
-        for lm in self.landmarks.values():
-            if lm.map_prior is None and lm.obs:
-                C = corr.get(max(lm.obs))
-                if C is not None:
-                    lm.X_w = lm.X_w @ C[:3, :3].T + C[:3, 3]
+        self._move_landmarks(corr)
         o = self.active[0]
         if o in corr and o != anchor.kf_id:
-            self._carried_prior(chain, anchor_priors, result)
+            self._carried_prior(chain, anchor_priors)
         return corr
 
-    def _carried_prior(self, chain: list[Keyframe], anchor_priors: list, result) -> None:
+    def _carried_prior(self, chain: list[Keyframe], anchor_priors: list) -> None:
         """The oldest active keyframe's marginal prior: the anchor prior and the archived links up to it,
-        linearised at the bridge's ``result`` (the window's own links and the fix are not in it)."""
+        linearised at the chain's (bridged) states (the window's own links and the fix are not in it)."""
         import gtsam
 
         X, V, B, _, _ = _sym()
@@ -845,51 +849,35 @@ class SlidingWindowBackend:
             if kf is not chain[0]:
                 for f in self.archived_links.get(k, ()):
                     fg.push_back(f)
-            for key in (X(k), V(k), B(k)):
-                if k != o:
+            if k != o:
+                for key in (X(k), V(k), B(k)):
                     elim.push_back(key)
-            vals.insert(X(k), result.atPose3(X(k)))
-            vals.insert(V(k), result.atVector(V(k)))
-            vals.insert(B(k), result.atConstantBias(B(k)))
+            _insert_state(vals, k, kf.T_w_b, kf.v_w, kf.bias)
         lin_pt = gtsam.Values()
-        lin_pt.insert(X(o), result.atPose3(X(o)))
-        lin_pt.insert(V(o), result.atVector(V(o)))
-        lin_pt.insert(B(o), result.atConstantBias(B(o)))
+        ko = self.keyframes[o]
+        _insert_state(lin_pt, o, ko.T_w_b, ko.v_w, ko.bias)
         try:
             _, remaining = fg.linearize(vals).eliminatePartialSequential(elim)
         except RuntimeError as e:
             log.info("backend: carried prior unavailable (%s); loose priors", str(e).splitlines()[0][:120])
             self._loose_oldest_prior()
             return
-        self.prior_factors = [
-            gtsam.LinearContainerFactor(remaining.at(i), lin_pt)
-            for i in range(remaining.size())
-            if remaining.at(i) is not None
-        ]
+        self.prior_factors = _linear_prior(remaining, lin_pt)
 
     def _loose_oldest_prior(self) -> None:
         """Priors around the oldest active keyframe's current state: roll/pitch and biases keep their
         confidence, position, yaw and velocity are loose (after a relocalisation moved it)."""
-        import gtsam
-
-        X, V, B, _, _ = _sym()
         c = self.cfg
         o = self.keyframes[self.active[0]]
-        self.prior_factors = [
-            gtsam.PriorFactorPose3(
-                X(o.kf_id),
-                to_pose3(o.T_w_b),
-                pose_prior_noise_world(
-                    o.T_w_b[:3, :3], np.array([c.prior_roll_pitch_sigma] * 2 + [0.1]), 0.5
-                ),
-            ),
-            gtsam.PriorFactorVector(V(o.kf_id), o.v_w, gtsam.noiseModel.Isotropic.Sigma(3, 0.2)),
-            gtsam.PriorFactorConstantBias(
-                B(o.kf_id),
-                make_bias(o.bias),
-                gtsam.noiseModel.Diagonal.Sigmas(np.array([0.02] * 3 + [c.prior_gyro_bias_sigma] * 3)),
-            ),
-        ]
+        self.prior_factors = _state_priors(
+            o.kf_id,
+            o.T_w_b,
+            o.v_w,
+            o.bias,
+            pose_prior_noise_world(o.T_w_b[:3, :3], np.array([c.prior_roll_pitch_sigma] * 2 + [0.1]), 0.5),
+            0.2,
+            [0.02] * 3 + [c.prior_gyro_bias_sigma] * 3,
+        )
 
     def _forget_keyframe(self, k: int) -> None:
         """Remove a keyframe's observations and state (its final pose stays in ``history``)."""

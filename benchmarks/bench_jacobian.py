@@ -379,16 +379,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "benchmark": "jacobian",
         "figure": "paper Fig. 6 (a) all dimensions, (b) one dimension at a time",
-        "model": {
-            "source": bm.source,
-            "description": bm.description,
-            "dir": str(bm.model_dir),
-            "modality": bm.modality,
-            "height": bm.height,
-            "width": bm.width,
-            "code_dim": bm.code_dim,
-            **bm.info,
-        },
+        "model": bm.summary(),
         "data": {
             "root": str(root),
             "synthetic": synthetic,

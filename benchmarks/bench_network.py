@@ -489,16 +489,7 @@ def main(argv: list[str] | None = None) -> dict:
     base = stats["ort_fd"]["median_ms"]
     result = {
         "benchmark": "network",
-        "model": {
-            "source": bm.source,
-            "description": bm.description,
-            "dir": str(bm.model_dir),
-            "modality": bm.modality,
-            "height": bm.height,
-            "width": bm.width,
-            "code_dim": bm.code_dim,
-            **bm.info,
-        },
+        "model": bm.summary(),
         "input": {"root": str(root), "synthetic": synthetic, "frame": frame.name},
         "baseline": "ort_fd",
         "comparison": comparison,

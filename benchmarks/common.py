@@ -203,6 +203,19 @@ class BenchModel:
     code_dim: int
     info: dict = field(default_factory=dict)
 
+    def summary(self) -> dict:
+        """The model's entry in a benchmark's JSON."""
+        return {
+            "source": self.source,
+            "description": self.description,
+            "dir": str(self.model_dir),
+            "modality": self.modality,
+            "height": self.height,
+            "width": self.width,
+            "code_dim": self.code_dim,
+            **self.info,
+        }
+
 
 def run_provenance(repo: Path, code_paths: tuple[str, ...] = ("runtime", "conf", "sim", "benchmarks/*.py")) -> str:
     """Three lines saying where and on what a run happened: the machine (CPU, cores, load), the UTC date, and the

@@ -30,6 +30,11 @@
   The exact decoder is always used for the outputs and the depth metrics. Observed: the codes move by 1-3
   units from one optimisation to the next (the window's landmarks change and the code directions are weakly
   determined), so relinearising at every build is needed; ``build_relin_threshold`` > 0 saved nothing there.
+* **Coast bridge** (:meth:`DenseMapper.bridge_factors`, ``bridge_span`` > 0): when a relocalisation
+  re-estimates a coasted stretch (:meth:`runtime.backend.graph.SlidingWindowBackend.bridge`), Eq. 14 factors on
+  the keyframes' final depth maps (codes fixed) join the IMU links; marginalised keyframes keep their final
+  depth and uncertainty maps (float32) as long as the backend keeps their states. Off by default: on a blank
+  wall the network's depth is a guess that does not follow the distance (``docs/PITFALLS.md``).
 * **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the window's keyframes' decoded depths,
   uncertainty-filtered and fused, :func:`runtime.dense_map.fuse_depth_maps`), per-keyframe depth and
   uncertainty maps in ``keyframe_depth/``, and with ground-truth depth (``mav0/depth0``) the Table 2 metrics
@@ -90,6 +95,10 @@ class DenseConfig:
             pair's Eq. 14 rows (:class:`runtime.backend.depth_factors.DepthFactorConfig`; None: independent).
         fill_recent: when fewer than ``n_code_keyframes`` keyframes are co-visible with the newest (visual
             tracking lost on a textureless stretch), fill the code keyframes with the most recent ones.
+        bridge_span: the relocalisation's coast bridge (:meth:`runtime.backend.graph.SlidingWindowBackend.bridge`)
+            gets Eq. 14 factors between each keyframe of the bridged stretch and its next ``bridge_span`` ones,
+            on their final depth maps (codes fixed; the depth maps of marginalised keyframes are kept as long
+            as their states, ``backend.archive_s``); 0: the bridge is inertial only.
         depth_source: ``"network"``, or ``"ground_truth"``: a diagnostic upper bound (needs ``mav0/depth0``),
             where a keyframe's depth is the rendered depth plus the network's code-dependent part,
             ``D(c) = D_gt + D_net(c) - D_net(0)`` (so the codes and the code Jacobian are the network's), with
@@ -128,6 +137,7 @@ class DenseConfig:
     geo_eff_rows: float | None = None
     consis_eff_rows: float | None = None
     fill_recent: bool = False
+    bridge_span: int = 0
     depth_source: str = "network"
     oracle_b: float = 0.02
     geo_fixed_landmarks: bool = False
@@ -140,6 +150,8 @@ class DenseConfig:
     def __post_init__(self) -> None:
         if self.n_code_keyframes < 1:
             raise ValueError(f"n_code_keyframes={self.n_code_keyframes}: must be >= 1")
+        if self.bridge_span < 0:
+            raise ValueError(f"bridge_span={self.bridge_span}: must be >= 0")
         if self.n_consis < 1:
             raise ValueError(f"n_consis={self.n_consis}: must be >= 1")
         if self.relin_threshold < 0:
@@ -265,8 +277,21 @@ class _KfDense:
 
 
 @dataclass
+class _FixedDepth:
+    """A keyframe's final depth map, kept for the coast bridge (a depth provider whose code is fixed)."""
+
+    depth_map: np.ndarray  # (H, W) float32 [m]
+    uncertainty: np.ndarray  # (H, W) float32 Laplace scale [m]
+    feat_uv: np.ndarray  # (F, 2) network pixels of the keyframe's tracked features
+
+    def depth(self, code=None) -> np.ndarray:
+        return self.depth_map.astype(np.float64)
+
+
+@dataclass
 class _Stats:
     n_optim: int = 0
+    n_bridge_factors: int = 0
     n_code_kfs: list = field(default_factory=list)
     n_geo_rows: list = field(default_factory=list)
     n_consis_rows: list = field(default_factory=list)
@@ -312,6 +337,7 @@ class DenseMapper:
         self.kfs: dict[int, _KfDense] = {}
         self.code_kfs: list[int] = []
         self.per_kf_metrics: dict[int, dict] = {}
+        self.archive: dict[int, _FixedDepth] = {}  # marginalised keyframes' final depths (coast bridge)
         self.stats = _Stats()
 
     # ------------------------------------------------------------------ keyframes
@@ -471,7 +497,60 @@ class DenseMapper:
         if d is None:
             return
         self._evaluate(backend, d)
+        if self.cfg.bridge_span > 0:
+            for k in [k for k in self.archive if k not in backend.archived_states]:
+                del self.archive[k]
+            self.archive[kf_id] = self._fixed(d)
         del self.kfs[kf_id]
+
+    def _fixed(self, d: _KfDense) -> _FixedDepth:
+        return _FixedDepth(
+            self.final_depth(d).astype(np.float32), np.asarray(d.provider.uncertainty, np.float32), d.feat_uv
+        )
+
+    def bridge_factors(self, backend, poses: dict[int, np.ndarray]) -> list:
+        """Eq. 14 factors on the poses of a coast bridge: each keyframe of ``poses`` (``kf_id -> T_w_b``, the
+        bridge's start values) with its next ``bridge_span`` ones, on fixed final depth maps (samples by the
+        Sec. 5.2 strategy in the older keyframe). On a textureless stretch they hold the distance to the
+        surface and the tilt against it, which the IMU alone lets drift."""
+        from gtsam.symbol_shorthand import X
+
+        if self.cfg.bridge_span <= 0:
+            return []
+        t0 = time.perf_counter()
+        maps = {}
+        for k in sorted(poses):
+            if k in self.kfs:
+                maps[k] = self._fixed(self.kfs[k])
+            elif k in self.archive:
+                maps[k] = self.archive[k]
+        ks = list(maps)
+        out = []
+        for i, k2 in enumerate(ks):
+            for k1 in ks[i + 1 : i + 1 + self.cfg.bridge_span]:
+                rng = np.random.default_rng([self.cfg.seed, k1, k2])
+                s = sample_consistency_pixels(
+                    maps[k2].feat_uv, self.net.width, self.net.height, self.cfg.n_consis, rng=rng, margin=2
+                )
+                try:
+                    f = make_consistency_factor(
+                        (X(k1), X(k2)),
+                        None,
+                        (maps[k1], maps[k2]),
+                        s.uv,
+                        self.K_net,
+                        self.T_b_c,
+                        (poses[k1], poses[k2]),
+                        (None, None),
+                        self.fcfg,
+                    )
+                except ValueError as e:
+                    log.info("dense: no bridge consistency factor %d-%d (%s)", k1, k2, e)
+                    continue
+                out.append(f)
+        self.stats.n_bridge_factors += len(out)
+        self.timers["dense_factors"] += time.perf_counter() - t0
+        return out
 
     # ------------------------------------------------------------------ evaluation and outputs
     def final_depth(self, d: _KfDense) -> np.ndarray:
@@ -525,6 +604,7 @@ class DenseMapper:
             "dense_mean_code_keyframes": float(np.mean(st.n_code_kfs)) if st.n_code_kfs else 0.0,
             "dense_mean_geo_rows": float(np.mean(st.n_geo_rows)) if st.n_geo_rows else 0.0,
             "dense_mean_consis_rows": float(np.mean(st.n_consis_rows)) if st.n_consis_rows else 0.0,
+            "dense_bridge_factors": st.n_bridge_factors,
             "decoder_calls": int(self.net.decoder_calls),
             "dense_config": {k: getattr(self.cfg, k) for k in self.cfg.__dataclass_fields__},
         }

@@ -398,7 +398,8 @@ class ConsistencyResult:
         z1: (S,) depth of the warped points in k1 [m].
         dr_dd2: (S,) derivative of ``r`` with respect to ``d_k2(P2)`` (for the covariance), 0 where not valid.
         dz_dd2: (S,) derivative of ``z1`` with respect to ``d_k2(P2)``.
-        jacobians: ``(dr/dxi_1 (S, 6), dr/dxi_2 (S, 6), dr/dc_1 (S, C), dr/dc_2 (S, C))`` or None.
+        jacobians: ``(dr/dxi_1 (S, 6), dr/dxi_2 (S, 6), dr/dc_1 (S, C), dr/dc_2 (S, C))`` (the code parts None
+            for fixed depth maps) or None.
     """
 
     r: np.ndarray
@@ -407,7 +408,7 @@ class ConsistencyResult:
     z1: np.ndarray
     dr_dd2: np.ndarray
     dz_dd2: np.ndarray
-    jacobians: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
+    jacobians: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None
 
 
 def consistency_residuals(
@@ -422,6 +423,7 @@ def consistency_residuals(
     J1: np.ndarray | None = None,
     J2: np.ndarray | None = None,
     min_depth: float = 0.05,
+    pose_jacobians: bool = False,
 ) -> ConsistencyResult:
     """Depth consistency residuals (Eq. 14) of samples ``P2`` of keyframe k2 against keyframe k1.
 
@@ -436,6 +438,8 @@ def consistency_residuals(
         depth1, depth2: (H, W) decoded depth maps [m] of k1 and k2.
         J1, J2: (H, W, C) their code Jacobians; both or neither (then no Jacobians are computed).
         min_depth: smallest valid depth [m] in k1.
+        pose_jacobians: without ``J1, J2``, the pose Jacobians all the same (the code ones are None: fixed
+            depth maps).
 
     Returns:
         :class:`ConsistencyResult`.
@@ -464,7 +468,8 @@ def consistency_residuals(
     dr_dd2 = np.einsum("si,si->s", a, dp_dd2)
     dz_dd2 = dp_dd2[:, 2]
     jac = None
-    if J1 is not None and J2 is not None:
+    with_codes = J1 is not None and J2 is not None
+    if with_codes or pose_jacobians:
         S = r.size
         R_c_b = T_c_b[:3, :3]
         T_b1_w = inv_T(T_w_b1)
@@ -477,11 +482,11 @@ def consistency_residuals(
         b2 = b1 @ T_b1_b2[:3, :3]  # dr/dp_b2
         # p_b1 = T_b1_b2 Exp(xi2) p_b2: d/domega = -R_b1_b2 [p_b2]_x, d/dv = R_b1_b2
         J_x2 = np.concatenate([np.cross(p_b2, b2), b2], 1)
-        J_c1 = np.where(valid[:, None], lookup1.sample(J1), 0.0)
-        J_c2 = dr_dd2[:, None] * lookup2.sample(J2)
+        J_c1 = np.where(valid[:, None], lookup1.sample(J1), 0.0) if with_codes else None
+        J_c2 = dr_dd2[:, None] * lookup2.sample(J2) if with_codes else None
         jac = (J_x1, J_x2, J_c1, J_c2)
         for Jk in jac:
-            if Jk.shape[0] != S:
+            if Jk is not None and Jk.shape[0] != S:
                 raise AssertionError(f"consistency Jacobian has {Jk.shape[0]} rows for {S} samples")
     return ConsistencyResult(r, valid, uv1, z1, dr_dd2, dz_dd2, jac)
 
@@ -503,7 +508,7 @@ def consistency_sigmas(
 
 def make_consistency_factor(
     pose_keys: tuple[int, int],
-    code_keys: tuple[int, int],
+    code_keys: tuple[int, int] | None,
     providers: tuple[DepthProvider, DepthProvider],
     uv2: np.ndarray,
     K: Sequence[float],
@@ -515,7 +520,8 @@ def make_consistency_factor(
     """Eq. 14 factor of the pair (k1, k2) on samples ``uv2`` of k2, keys ``[X(k1), X(k2), C(k1), C(k2)]``.
 
     Args:
-        pose_keys: keys of ``X(k1)``, ``X(k2)``; code_keys: keys of ``C(k1)``, ``C(k2)``.
+        pose_keys: keys of ``X(k1)``, ``X(k2)``; code_keys: keys of ``C(k1)``, ``C(k2)``, or None: the codes
+            stay at ``init_codes`` (fixed depth maps) and the factor's keys are ``[X(k1), X(k2)]``.
         providers: depth providers of k1 and k2 (same network size).
         uv2: (S, 2) sampled network pixels of k2 (:func:`runtime.sampling.sample_consistency_pixels`).
         K: ``(fx, fy, cx, cy)`` of the network camera (e.g. ``NetworkMapping.camera(cam.pinhole())``).
@@ -559,6 +565,17 @@ def make_consistency_factor(
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
     kx1, kx2 = (int(k) for k in pose_keys)
+    if code_keys is None:
+        return _fixed_depth_consistency_factor(
+            (kx1, kx2),
+            (p1.depth(np.asarray(init_codes[0])), p2.depth(np.asarray(init_codes[1]))),
+            T_b_c,
+            K,
+            lookup2,
+            rays2,
+            sigmas,
+            cfg,
+        )
     kc1, kc2 = (int(k) for k in code_keys)
     if len({kx1, kx2, kc1, kc2}) != 4:
         raise ValueError(f"keys must be distinct, got {pose_keys}, {code_keys}")
@@ -586,3 +603,28 @@ def make_consistency_factor(
         [6, 6, C1, C2],
         check=cfg.check_shapes,
     )
+
+
+def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigmas, cfg: DepthFactorConfig):
+    """Eq. 14 with both depth maps fixed: keys ``[X(k1), X(k2)]`` (:func:`make_consistency_factor`)."""
+    kx1, kx2 = keys
+    if kx1 == kx2:
+        raise ValueError(f"keys must be distinct, got {keys}")
+    d1, d2 = (np.asarray(d, np.float64) for d in depths)
+
+    def error_fn(values, want_jacobians: bool):
+        res = consistency_residuals(
+            values.atPose3(kx1).matrix(),
+            values.atPose3(kx2).matrix(),
+            T_b_c,
+            K,
+            lookup2,
+            rays2,
+            d1,
+            d2,
+            min_depth=cfg.min_depth,
+            pose_jacobians=want_jacobians,
+        )
+        return res.r, (list(res.jacobians[:2]) if want_jacobians else None)
+
+    return custom_factor(_noise(sigmas, cfg.consis_huber_k), [kx1, kx2], error_fn, [6, 6], check=cfg.check_shapes)

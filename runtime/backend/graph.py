@@ -149,6 +149,8 @@ class FactorProvider(Protocol):
     and factors into ``graph``; the window's states and landmarks are already there, see
     :meth:`SlidingWindowBackend.window_view`), then ``on_optimized`` with the LM result. Before a keyframe's
     ``X, V, B`` are marginalised, ``on_marginalize`` is called (drop or summarise variables tied to it).
+    Optionally, ``bridge_factors(backend, poses)`` returns extra factors on the poses ``X(k)`` of the keyframes
+    a coast bridge re-estimates (``poses``: ``kf_id -> (4, 4)`` start values, archived keyframes included).
     """
 
     def add_factors(self, backend: SlidingWindowBackend, graph, values) -> None: ...
@@ -753,7 +755,8 @@ class SlidingWindowBackend:
         tracked visually before the loss) to ``kf_id`` (the relocalised keyframe) over their recorded IMU
         links: a prior on the anchor's state (``anchor_sigmas``: rotation [rad], position [m], velocity
         [m/s], accelerometer bias [m/s^2], gyroscope bias [rad/s]), the PnP pose ``T_fix`` of ``kf_id``
-        (``fix_sigmas``: rotation [rad], position [m], body frame). Velocities and biases are re-estimated
+        (``fix_sigmas``: rotation [rad], position [m], body frame), and the providers' ``bridge_factors``
+        (dense: Eq. 14 between the chain's depth maps). Velocities and biases are re-estimated
         with the poses, so a systematic drift (a velocity error at the loss, a bias) is explained rather than
         spread. The window, the archive and ``history`` take the smoothed states; landmarks follow their newest
         observing keyframe; the marginal prior on the oldest active keyframe, when it moved, becomes the
@@ -799,9 +802,15 @@ class SlidingWindowBackend:
             )
         )
         values = gtsam.Values()
+        start = {}
         for kf in chain:
             C = init(kf.ts) if init is not None and kf is not anchor else np.eye(4)
-            _insert_state(values, kf.kf_id, C @ kf.T_w_b, C[:3, :3] @ kf.v_w, kf.bias)
+            start[kf.kf_id] = C @ kf.T_w_b
+            _insert_state(values, kf.kf_id, start[kf.kf_id], C[:3, :3] @ kf.v_w, kf.bias)
+        for p in self.providers:
+            extra = getattr(p, "bridge_factors", None)
+            for f in extra(self, start) if extra is not None else ():
+                graph.push_back(f)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         params.setRelativeErrorTol(1e-6)

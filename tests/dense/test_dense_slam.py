@@ -1,17 +1,22 @@
 """The dense (tightly coupled) system end to end on a short rendered sequence with the shipped model."""
 
 import json
+from collections import defaultdict
 
+import gtsam
 import numpy as np
 import pytest
+from gtsam.symbol_shorthand import X
 
 from runtime.cli import slam_main
-from runtime.dense import DenseConfig, DenseMapper, GroundTruthDepth, LinearizedDepth
+from runtime.dense import DenseConfig, DenseMapper, GroundTruthDepth, LinearizedDepth, _KfDense, _Stats
+from runtime.geometry import to_pose3
 from runtime.io.euroc import read_euroc
 from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
 from runtime.network import DepthNetwork, default_model_dir
 from runtime.slam import run_sequence
+from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
 
 sim_euroc = pytest.importorskip("sim.euroc")
 
@@ -163,6 +168,58 @@ def test_code_keyframes_fall_back_to_the_most_recent_when_nothing_is_covisible()
         m.cfg = DenseConfig(n_code_keyframes=4, fill_recent=fill)
         m.kfs = dict.fromkeys(Backend.active)
         assert m._select(Backend()) == want
+
+
+def test_bridge_factors_hold_archived_depth_maps_against_the_wall():
+    # a camera backing away from the wall x = 3 in four keyframes; 0 and 1 left the window (their depth maps
+    # are archived while their states are), 2 and 3 are active; keyframe 9 was archived and then forgotten
+    H, W = 48, 64
+    K = network_K(H, W)
+    poses = {k: body_pose((0.0, 0.0, 0.05 * k), (-0.2 * k, 0.1 * k, 0.0)) for k in range(4)}
+
+    class Provider:  # a keyframe's network state: its decoded depth is the wall's
+        def __init__(self, k):
+            self.D = plane_depth(poses[k], K, (H, W), 3.0)
+            self.uncertainty = np.full((H, W), 0.01, np.float32)
+
+        def exact(self, code):
+            return self.D
+
+    class Backend:
+        archived_states = {0: None, 1: None}
+
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg = DenseConfig(bridge_span=2, n_consis=40)
+    m.fcfg = m.cfg.factor_config()
+    m.net = type("Net", (), {"width": W, "height": H})()
+    m.K_net, m.T_b_c = K, T_B_C
+    m.depth_gt, m.per_kf_metrics, m.stats, m.timers = None, {}, _Stats(), defaultdict(float)
+    m.kfs = {k: _KfDense(k, k, Provider(k), np.zeros((0, 2)), None, np.zeros(8)) for k in range(4)}
+    m.archive = {9: None}
+    for k in (0, 1):
+        m.on_marginalize(Backend(), k)
+    assert sorted(m.archive) == [0, 1] and sorted(m.kfs) == [2, 3]
+    assert m.archive[0].depth_map.dtype == np.float32
+    facs = m.bridge_factors(Backend(), poses)
+    # each keyframe with its next two: (1, 0), (2, 0), (2, 1), (3, 1), (3, 2); newer key first
+    assert [tuple(gtsam.DefaultKeyFormatter(k) for k in f.keys()) for f in facs] == [
+        (f"x{a}", f"x{b}") for a, b in ((1, 0), (2, 0), (2, 1), (3, 1), (3, 2))
+    ]
+    v = gtsam.Values()
+    for k, T in poses.items():
+        v.insert(X(k), to_pose3(T))
+    for f in facs:
+        r = f.unwhitenedError(v)
+        assert np.count_nonzero(r) > 20 and np.abs(r).max() < 1e-4  # consistent at the true poses
+    moved = poses[3].copy()
+    moved[0, 3] += 0.1  # keyframe 3 10 cm closer to the wall than its depth map says
+    v.update(X(3), to_pose3(moved))
+    r = facs[-1].unwhitenedError(v)
+    assert np.median(np.abs(r[r != 0])) > 0.05
+    m.cfg = DenseConfig(bridge_span=0)
+    assert m.bridge_factors(Backend(), poses) == []  # span 0: the bridge stays inertial
+    with pytest.raises(ValueError, match="bridge_span"):
+        DenseConfig(bridge_span=-1)
 
 
 def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):

@@ -268,6 +268,29 @@ def test_consistency_jacobians_every_key(seed):
         assert np.all(Jk[r == 0] == 0)  # silent rows have zero Jacobians
 
 
+def test_fixed_depth_consistency_factor_is_the_pose_part_of_the_full_one():
+    # code_keys=None (the coast bridge): the depth maps stay at the given codes, keys are the two poses only
+    Ts, provs, uv2, codes = pair_setup(0)
+    full = make_consistency_factor((X(0), X(1)), (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+    fixed = make_consistency_factor((X(0), X(1)), None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+    assert list(fixed.keys()) == [X(0), X(1)]
+    # away from the build poses, so that the residual is not ~0
+    Ts2 = (Ts[0], Ts[1] @ gtsam.Pose3.Expmap(np.array([0.01, -0.02, 0.01, 0.03, -0.02, 0.04])).matrix())
+    v = pair_values(Ts2, codes)
+    vp = gtsam.Values()
+    for k in range(2):
+        vp.insert(X(k), v.atPose3(X(k)))
+    r = fixed.unwhitenedError(vp)
+    np.testing.assert_allclose(r, full.unwhitenedError(v), atol=1e-12)
+    assert np.count_nonzero(np.abs(r) > 1e-3) > 10
+    num = assert_jacobians_match(fixed, vp)
+    assert all(np.abs(Jk).max() > 1e-3 for Jk in num)
+    for Jk, Jf in zip(analytic_jacobians(fixed, vp), analytic_jacobians(full, v)[:2], strict=True):
+        np.testing.assert_allclose(Jk, Jf, atol=1e-12)
+    with pytest.raises(ValueError, match="distinct"):
+        make_consistency_factor((X(0), X(0)), None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+
+
 def test_consistency_sigmas_propagate_both_maps():
     T1 = body_pose(t=(0.0, 0.0, 0.0))
     T2 = body_pose(t=(0.5, 0.3, 0.0))

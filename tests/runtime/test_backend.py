@@ -14,7 +14,7 @@ from runtime.backend.factors import (
 )
 from runtime.backend.graph import BackendConfig, Keyframe, SlidingWindowBackend
 from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params
-from runtime.geometry import inv_T, make_T, pose_error, so3_exp
+from runtime.geometry import inv_T, make_T, pose_error, so3_exp, to_pose3
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, ImuNoise, Motion, make_imu, room_points
 
 K = EUROC_CAM.pinhole().K
@@ -273,6 +273,29 @@ def test_coast_bridge_recovers_the_coasted_states_from_the_imu_links():
     assert st["ok"]
     for i in be.active:
         assert pose_error(be.keyframes[i].T_w_b, sc.T[i])[0] < 0.01, i
+
+
+def test_coast_bridge_takes_the_providers_bridge_factors():
+    # a provider's bridge factor (here: a pose prior 5 cm off the truth on one coasted keyframe) joins the
+    # bridge; it sees the start values of exactly the bridged keyframes
+    sc, be = _coasted_backend()
+    last, mid = len(sc.t) - 1, 6
+    T_off = sc.T[mid].copy()
+    T_off[:3, 3] += [0.05, 0.0, 0.0]
+    seen = {}
+
+    class Provider:
+        def bridge_factors(self, backend, poses):
+            seen.update(poses)
+            return [gtsam.PriorFactorPose3(X(mid), to_pose3(T_off), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4))]
+
+    be.add_provider(Provider())
+    sig2, sig5 = np.array([1e-3, 1e-3]), np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3])
+    be.bridge(int(sc.t[2] * 1e9) + 1, last, sc.T[last], sig2, sig5)
+    assert sorted(seen) == list(range(2, last + 1))
+    assert np.allclose(seen[2], sc.T[2])  # the anchor starts where it was
+    assert pose_error(be.history[mid][1], T_off)[0] < 1e-3
+    assert 0.03 < pose_error(be.history[mid][1], sc.T[mid])[0] < 0.06
 
 
 def test_coast_bridge_declines_without_an_inertial_chain():

@@ -445,32 +445,46 @@ class DenseMapper:
             d1 = self.kfs[k1]
             for k2 in sel[1:]:
                 d2 = self.kfs[k2]
-                rng = np.random.default_rng([cfg.seed, k1, k2])
-                s = sample_consistency_pixels(
-                    d2.feat_uv, self.net.width, self.net.height, cfg.n_consis, rng=rng, margin=2
+                f = self._consistency_factor(
+                    (k1, k2),
+                    (d1.provider, d2.provider),
+                    d2.feat_uv,
+                    (backend.keyframes[k1].T_w_b, backend.keyframes[k2].T_w_b),
+                    (d1.code, d2.code),
                 )
-                try:
-                    f = make_consistency_factor(
-                        (X(k1), X(k2)),
-                        (C(k1), C(k2)),
-                        (d1.provider, d2.provider),
-                        s.uv,
-                        self.K_net,
-                        self.T_b_c,
-                        (backend.keyframes[k1].T_w_b, backend.keyframes[k2].T_w_b),
-                        (d1.code, d2.code),
-                        self.fcfg,
-                    )
-                except ValueError as e:
-                    log.info("dense: no consistency factor %d-%d (%s)", k1, k2, e)
-                    continue
-                graph.push_back(f)
-                n_con += f.dim()
+                if f is not None:
+                    graph.push_back(f)
+                    n_con += f.dim()
         self.stats.n_optim += 1
         self.stats.n_code_kfs.append(len(sel))
         self.stats.n_geo_rows.append(n_geo)
         self.stats.n_consis_rows.append(n_con)
         self.timers["dense_factors"] += time.perf_counter() - t0
+
+    def _consistency_factor(self, kfs, providers, feat_uv2, poses, codes=None):
+        """Eq. 14 factor of the pair ``kfs = (k1, k2)`` on the Sec. 5.2 samples of k2 (``feat_uv2``: its
+        features), at ``poses`` (``T_w_b``); ``codes`` None: fixed depth maps (pose keys only). None when no
+        sample is usable."""
+        from gtsam.symbol_shorthand import C, X
+
+        k1, k2 = kfs
+        rng = np.random.default_rng([self.cfg.seed, k1, k2])
+        s = sample_consistency_pixels(feat_uv2, self.net.width, self.net.height, self.cfg.n_consis, rng=rng, margin=2)
+        try:
+            return make_consistency_factor(
+                (X(k1), X(k2)),
+                None if codes is None else (C(k1), C(k2)),
+                providers,
+                s.uv,
+                self.K_net,
+                self.T_b_c,
+                poses,
+                (None, None) if codes is None else codes,
+                self.fcfg,
+            )
+        except ValueError as e:
+            log.info("dense: no consistency factor %d-%d (%s)", k1, k2, e)
+            return None
 
     def on_optimized(self, backend, result) -> None:
         from gtsam.symbol_shorthand import C
@@ -511,10 +525,9 @@ class DenseMapper:
     def bridge_factors(self, backend, poses: dict[int, np.ndarray]) -> list:
         """Eq. 14 factors on the poses of a coast bridge: each keyframe of ``poses`` (``kf_id -> T_w_b``, the
         bridge's start values) with its next ``bridge_span`` ones, on fixed final depth maps (samples by the
-        Sec. 5.2 strategy in the older keyframe). On a textureless stretch they hold the distance to the
-        surface and the tilt against it, which the IMU alone lets drift."""
-        from gtsam.symbol_shorthand import X
-
+        Sec. 5.2 strategy in the older keyframe). With depth maps that follow the surface they hold the
+        distance to it and the tilt against it on a textureless stretch, which the IMU alone lets drift (the
+        shipped network's do not on a blank wall: module doc)."""
         if self.cfg.bridge_span <= 0:
             return []
         t0 = time.perf_counter()
@@ -528,26 +541,9 @@ class DenseMapper:
         out = []
         for i, k2 in enumerate(ks):
             for k1 in ks[i + 1 : i + 1 + self.cfg.bridge_span]:
-                rng = np.random.default_rng([self.cfg.seed, k1, k2])
-                s = sample_consistency_pixels(
-                    maps[k2].feat_uv, self.net.width, self.net.height, self.cfg.n_consis, rng=rng, margin=2
-                )
-                try:
-                    f = make_consistency_factor(
-                        (X(k1), X(k2)),
-                        None,
-                        (maps[k1], maps[k2]),
-                        s.uv,
-                        self.K_net,
-                        self.T_b_c,
-                        (poses[k1], poses[k2]),
-                        (None, None),
-                        self.fcfg,
-                    )
-                except ValueError as e:
-                    log.info("dense: no bridge consistency factor %d-%d (%s)", k1, k2, e)
-                    continue
-                out.append(f)
+                f = self._consistency_factor((k1, k2), (maps[k1], maps[k2]), maps[k2].feat_uv, (poses[k1], poses[k2]))
+                if f is not None:
+                    out.append(f)
         self.stats.n_bridge_factors += len(out)
         self.timers["dense_factors"] += time.perf_counter() - t0
         return out

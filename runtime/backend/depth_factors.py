@@ -551,31 +551,13 @@ def make_consistency_factor(
     rays2 = np.stack([(uv2[:, 0] - cx) / fx, (uv2[:, 1] - cy) / fy, np.ones(uv2.shape[0])], -1)
     T1 = _check_T(init_poses[0], "init_poses[0]")
     T2 = _check_T(init_poses[1], "init_poses[1]")
-    res0 = consistency_residuals(
-        T1,
-        T2,
-        T_b_c,
-        K,
-        lookup2,
-        rays2,
-        p1.depth(np.asarray(init_codes[0])),
-        p2.depth(np.asarray(init_codes[1])),
-        min_depth=cfg.min_depth,
-    )
+    depths0 = (p1.depth(np.asarray(init_codes[0])), p2.depth(np.asarray(init_codes[1])))
+    res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, min_depth=cfg.min_depth)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
     kx1, kx2 = (int(k) for k in pose_keys)
     if code_keys is None:
-        return _fixed_depth_consistency_factor(
-            (kx1, kx2),
-            (p1.depth(np.asarray(init_codes[0])), p2.depth(np.asarray(init_codes[1]))),
-            T_b_c,
-            K,
-            lookup2,
-            rays2,
-            sigmas,
-            cfg,
-        )
+        return _fixed_depth_consistency_factor((kx1, kx2), depths0, T_b_c, K, lookup2, rays2, sigmas, cfg)
     kc1, kc2 = (int(k) for k in code_keys)
     if len({kx1, kx2, kc1, kc2}) != 4:
         raise ValueError(f"keys must be distinct, got {pose_keys}, {code_keys}")

@@ -808,9 +808,9 @@ class SlidingWindowBackend:
             start[kf.kf_id] = C @ kf.T_w_b
             _insert_state(values, kf.kf_id, start[kf.kf_id], C[:3, :3] @ kf.v_w, kf.bias)
         for p in self.providers:
-            extra = getattr(p, "bridge_factors", None)
-            for f in extra(self, start) if extra is not None else ():
-                graph.push_back(f)
+            if hasattr(p, "bridge_factors"):  # optional (FactorProvider)
+                for f in p.bridge_factors(self, start):
+                    graph.push_back(f)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         params.setRelativeErrorTol(1e-6)

@@ -621,6 +621,7 @@ class SlamSystem:
                         ]
                     ),
                     init=correction,
+                    anchor_marginal=c.bridge_anchor_marginal,
                 )
             bridged = corr is not None
             if bridged:

@@ -46,6 +46,7 @@ class RelocConfig:
     bridge_anchor_vel_sigma: float = 0.05  # m/s
     bridge_anchor_acc_bias_sigma: float = 0.05  # m/s^2
     bridge_anchor_gyro_bias_sigma: float = 0.002  # rad/s
+    bridge_anchor_marginal: bool = True  # anchor prior: the window's marginal when it left (else the sigmas above)
     guided: bool = True  # at every keyframe, re-find map points near their predicted projection
     guided_radius_px: float = 12.0
     guided_max_hamming: int = 50

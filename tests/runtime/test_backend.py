@@ -229,14 +229,15 @@ def test_custom_factor_jacobians_match_numerical_and_shapes_are_checked():
         fb.linearize(vals)
 
 
-def _coasted_backend(n_kf=14, window=4, drift=0.4, seed=3):
+def _coasted_backend(n_kf=14, window=4, drift=0.4, seed=3, n_total=None):
     """A window that coasted on exact IMU links from keyframe 2 on, its estimates drifting quadratically in
-    time (position) and linearly (velocity), marginalising as it went (no landmarks: a blank wall)."""
-    sc = Scenario(n_kf=n_kf, dt_kf=0.3, seed=seed)
+    time (position) and linearly (velocity), marginalising as it went (no landmarks: a blank wall); the
+    scenario holds ``n_total`` keyframes (default ``n_kf``), the backend the first ``n_kf``."""
+    sc = Scenario(n_kf=n_total or n_kf, dt_kf=0.3, seed=seed)
     be = SlidingWindowBackend(EUROC_CAM.intrinsics, EUROC_T_BS, sc.params, BackendConfig(window_size=window))
     be.initialize(sc.kf(0))
     d = np.array([1.0, -0.6, 0.3]) * drift
-    span = sc.t[-1] - sc.t[2]
+    span = sc.t[n_kf - 1] - sc.t[2]
     for i in range(1, n_kf):
         a = max(sc.t[i] - sc.t[2], 0.0) / span
         T = sc.T[i].copy()
@@ -309,3 +310,89 @@ def test_coast_bridge_declines_without_an_inertial_chain():
     before = {k: T.copy() for k, (_, T) in be.history.items()}
     assert be.bridge(int(sc.t[2] * 1e9) + 1, last + 1, sc.T[last], sig2, sig5) is None
     assert all(np.array_equal(be.history[k][1], before[k]) for k in before)  # nothing moved
+
+
+class _PosePriors:
+    """A provider standing in for the visual tracking after a relocalisation: tight true pose priors on the
+    keyframes from ``first`` on."""
+
+    def __init__(self, sc, first):
+        self.sc, self.first = sc, first
+
+    def add_factors(self, backend, graph, values):
+        for k in backend.active:
+            if k >= self.first:
+                graph.push_back(
+                    gtsam.PriorFactorPose3(X(k), to_pose3(self.sc.T[k]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4))
+                )
+
+    def on_optimized(self, backend, result):
+        pass
+
+    def on_marginalize(self, backend, kf_id):
+        pass
+
+
+def _smoothed_coast_errors(smooth: bool):
+    """Coast, bridge with a wrong accelerometer bias in the anchor prior, then five tracked keyframes."""
+    n_coast, n_after, window = 14, 5, 4
+    sc, be = _coasted_backend(n_kf=n_coast, window=window, n_total=n_coast + n_after)
+    be.cfg.smooth_coast = smooth
+    last = n_coast - 1
+    be.archived_states[2].bias[:3] += [0.06, -0.04, 0.03]  # what the window believed at the loss
+    be.bridge(
+        int(sc.t[2] * 1e9) + 1,
+        last,
+        sc.T[last],
+        np.array([1e-3, 1e-3]),
+        np.array([1e-3, 1e-3, 0.05, 0.05, 2e-3]),
+        anchor_marginal=False,
+    )
+    coast = range(3, last)
+    after_bridge = max(pose_error(be.history[i][1], sc.T[i])[0] for i in coast)
+    be.add_provider(_PosePriors(sc, n_coast))
+    in_smoother = []
+    for i in range(n_coast, n_coast + n_after):
+        be.add_keyframe(sc.kf(i), sc.pim(i - 1, i))
+        in_smoother.append(be.optimize().get("coast_keyframes", 0))
+        be.marginalize()
+    final = max(pose_error(be.history[i][1], sc.T[i])[0] for i in coast)
+    return after_bridge, final, in_smoother, be
+
+
+def test_the_bridged_coast_stays_in_the_smoother_until_the_relocalised_keyframe_leaves():
+    after_bridge, final, in_smoother, be = _smoothed_coast_errors(smooth=True)
+    assert after_bridge > 0.02  # the PnP pose alone cannot tell the bias error from a velocity error
+    assert final < 0.2 * after_bridge and final < 5e-3, (after_bridge, final)
+    # the coast (anchor 2 up to the oldest active keyframe) is in every optimisation while the relocalised
+    # keyframe 13 is in the window, then leaves with it
+    assert in_smoother == [8, 9, 10, 11, 0], in_smoother
+    assert be.coast is None
+    # without: the archived coast keeps the bridge's estimate
+    after_bridge_off, final_off, in_smoother_off, _ = _smoothed_coast_errors(smooth=False)
+    assert in_smoother_off == [0] * 5
+    assert abs(final_off - after_bridge_off) < 0.2 * after_bridge_off
+
+
+def test_the_coast_anchor_prior_is_what_the_window_knew_when_the_anchor_left():
+    sc, be = _coasted_backend()
+    last = len(sc.t) - 1
+    # every marginalised keyframe keeps the prior it was marginalised with: factors on its own X, V, B only
+    assert sorted(be.archived_priors) == sorted(be.archived_states)
+    for k, facs in be.archived_priors.items():
+        keys = {key for f in facs for key in f.keys()}
+        assert keys <= {X(k), gtsam.symbol("v", k), gtsam.symbol("b", k)} and X(k) in keys, k
+    corr = be.bridge(
+        int(sc.t[2] * 1e9) + 1, last, sc.T[last], np.array([1e-3, 1e-3]), np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3])
+    )
+    assert corr is not None and be.coast.anchor == 2 and be.coast.until == last
+    assert be.coast.anchor_priors is be.archived_priors[2]
+    for i in range(len(sc.t)):
+        assert pose_error(be.history[i][1], sc.T[i])[0] < 0.01, i
+    # the archive forgets the priors with the states
+    be.cfg.archive_s = 1.5
+    t_next = int((sc.t[last] + 0.3) * 1e9)
+    be.add_keyframe(Keyframe(last + 1, t_next, last + 1, sc.T[last], sc.v[last], np.zeros(6)), None)
+    be.marginalize()
+    assert sorted(be.archived_priors) == sorted(be.archived_states)
+    assert min(be.archived_states) > 2

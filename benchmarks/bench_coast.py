@@ -44,6 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks.common import cpu_model  # noqa: E402
 from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params  # noqa: E402
 from runtime.geometry import from_pose3, rotation_angle, to_pose3  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
@@ -177,6 +178,22 @@ def run_segments(seq, run: Path, t0: int, t1: int) -> dict:
     }
 
 
+def coast_row(root: Path, seed: int, runs: dict[str, Path], dt_kf: float = 0.4, widen: float = 2.0) -> dict:
+    """One whitewall sequence: the coast interval (from ``runs["sparse"]``'s events when there is one), the
+    oracles' coast RMSE [m] (and per axis) and :func:`run_segments` of every run (``mode -> run folder``) that
+    wrote a trajectory."""
+    seq = read_euroc(root)
+    wall_x = float(json.loads((root / "sim_info.json").read_text())["room_size_m"][0])
+    t0, t1, source = coast_interval(root, runs.get("sparse"), widen)
+    row = {"seed": seed, "t0_s": (t0 - seq.gt.ts[0]) * NS, "t1_s": (t1 - seq.gt.ts[0]) * NS, "source": source}
+    for mode in ORACLES:
+        e = oracle_coast(seq, t0, t1, mode, dt_kf, wall_x)
+        row[mode] = float(np.sqrt(np.mean(np.sum(e**2, 1))))
+        row[f"{mode} per axis"] = np.sqrt(np.mean(e**2, 0)).tolist()
+    row["runs"] = {m: run_segments(seq, d, t0, t1) for m, d in runs.items() if (d / "trajectory.txt").is_file()}
+    return row
+
+
 SEGMENTS = ("ate", "pre", "coast", "post", "pre_only", "post_only", "jump_m")
 
 
@@ -220,33 +237,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--widen", type=float, default=2.0, help="coast = the hold widened by this, without runs [s]")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_coast"))
     args = ap.parse_args(argv)
-    runs = Path(args.runs)
     rows = []
     for seed in args.seeds:
         root = Path(args.data) / f"euroc_whitewall_{args.duration:g}s_s{seed}_x{args.scale:g}"
         if not (root / "mav0").is_dir():
             raise SystemExit(f"bench_coast: no sequence {root}; run benchmarks/bench_dense.py --presets whitewall")
-        seq = read_euroc(root)
-        wall_x = float(json.loads((root / "sim_info.json").read_text())["room_size_m"][0])
-        t0, t1, source = coast_interval(root, runs / f"whitewall_s{seed}_sparse", args.widen)
-        row = {"seed": seed, "t0_s": (t0 - seq.gt.ts[0]) * NS, "t1_s": (t1 - seq.gt.ts[0]) * NS, "source": source}
-        for mode in ORACLES:
-            e = oracle_coast(seq, t0, t1, mode, args.dt_kf, wall_x)
-            row[mode] = float(np.sqrt(np.mean(np.sum(e**2, 1))))
-            row[f"{mode} per axis"] = np.sqrt(np.mean(e**2, 0)).tolist()
-        row["runs"] = {
-            run.name.split("_", 2)[2]: run_segments(seq, run, t0, t1)
-            for run in sorted(runs.glob(f"whitewall_s{seed}_*"))
-            if (run / "trajectory.txt").is_file()
-        }
-        rows.append(row)
-        print(f"bench_coast: seed {seed} done ({source})", flush=True)
+        runs = {run.name.split("_", 2)[2]: run for run in sorted(Path(args.runs).glob(f"whitewall_s{seed}_*"))}
+        rows.append(coast_row(root, seed, runs, args.dt_kf, args.widen))
+        print(f"bench_coast: seed {seed} done ({rows[-1]['source']})", flush=True)
     table = fmt_tables(rows)
     print(table)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     res = {
-        "machine": {"platform": platform.platform(), "data": "synthetic (sim/)"},
+        "machine": {"cpu": cpu_model(), "platform": platform.platform(), "data": "synthetic (sim/)"},
         "args": vars(args),
         "rows": rows,
         "table": table,

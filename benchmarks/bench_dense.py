@@ -6,6 +6,7 @@ upper bound of what a better network could buy: ``dense_gt_eq13_14``).
     python benchmarks/bench_dense.py                              # 60 s, seeds 0 1 2 (the setting)
     python benchmarks/bench_dense.py --duration 30 --seeds 0      # smaller (whitewall needs >= 24 s)
     python benchmarks/bench_dense.py --scale 0.5 --set n_consis=200   # half-resolution images
+    python benchmarks/bench_dense.py --presets whitewall --slam-set backend.smooth_coast=false   # a runtime key
 
 Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one process, runs one after another),
 and for the dense runs the depth metrics of Table 2 on the keyframes that held a code, against the rendered
@@ -31,9 +32,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks.bench_slam import make_config  # noqa: E402
+from benchmarks.common import cpu_model  # noqa: E402
 from runtime.dense import DenseConfig  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
-from runtime.slam import SlamConfig, run_sequence  # noqa: E402
+from runtime.slam import run_sequence  # noqa: E402
 
 MODES = {
     "sparse": None,
@@ -60,9 +63,7 @@ def sequence(data: Path, preset: str, duration: float, seed: int, scale: float) 
         return root
     t0 = time.perf_counter()
     out = Path(
-        write_euroc_sequence(
-            root, preset, duration=duration, seed=seed, imu_noise=True, progress=False, scale=scale
-        )
+        write_euroc_sequence(root, preset, duration=duration, seed=seed, imu_noise=True, progress=False, scale=scale)
     )
     print(f"bench_dense: rendered {out} in {time.perf_counter() - t0:.0f} s", flush=True)
     return out
@@ -177,14 +178,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     ap.add_argument("--set", nargs="*", default=[], help="DenseConfig overrides key=value")
     ap.add_argument(
-        "--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder"
+        "--slam-set",
+        nargs="*",
+        default=[],
+        help="SlamConfig overrides key=value (conf/runtime keys, e.g. backend.smooth_coast=false)",
     )
+    ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_dense"))
     args = ap.parse_args(argv)
+    make_config("default", args.slam_set)  # a bad override fails here, before any rendering
     logging.basicConfig(level=logging.ERROR)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     machine = {
+        "cpu": cpu_model(),  # SLAM runs are chaotic: another CPU's floating point gives other trajectories
         "platform": platform.platform(),
         "cpus": os.cpu_count(),
         "python": platform.python_version(),
@@ -199,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                 m = run_sequence(
                     read_euroc(root),
                     out / f"{preset}_s{seed}_{mode}",
-                    SlamConfig(),
+                    make_config("default", args.slam_set),
                     progress=False,
                     plot=False,
                     dense=_dense_cfg(mode, args.set),
@@ -221,9 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     res = {
         "machine": machine,
         "args": vars(args),
-        "columns": (
-            "ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code"
-        ),
+        "columns": ("ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code"),
         "rows": rows,
         "bars": b,
         "table": table,

@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks.common import cpu_model  # noqa: E402
 from runtime.cli import default_sequence  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
 from runtime.slam import SlamConfig, run_sequence  # noqa: E402
@@ -205,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     machine = {
+        "cpu": cpu_model(),  # SLAM runs are chaotic: another CPU's floating point gives other trajectories
         "platform": platform.platform(),
         "cpus": os.cpu_count(),
         "python": platform.python_version(),

@@ -1,0 +1,35 @@
+"""benchmarks/bench_dense.py end to end at a tiny size: the table, the JSON, and runtime overrides (--slam-set)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks import bench_dense
+
+
+def _argv(tmp_path, *extra: str) -> list[str]:
+    return [
+        "--presets", "textured", "--seeds", "0", "--duration", "8", "--scale", "0.25", "--modes", "sparse",
+        "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"), *extra,
+    ]  # fmt: skip
+
+
+def test_slam_set_reaches_the_runs_and_the_json(tmp_path, capsys):
+    assert bench_dense.main(_argv(tmp_path, "--slam-set", "backend.window_size=6", "reloc.enabled=false")) == 0
+    run = json.loads((tmp_path / "out" / "textured_s0_sparse" / "metrics.json").read_text())
+    assert run["config"]["backend"]["window_size"] == 6 and run["config"]["reloc"]["enabled"] is False
+    assert run["config"]["backend"]["smooth_coast"] is True  # untouched keys keep the defaults
+    res = json.loads((tmp_path / "out" / "bench_dense.json").read_text())
+    assert res["args"]["slam_set"] == ["backend.window_size=6", "reloc.enabled=false"]
+    assert res["machine"]["cpu"]  # runs differ between CPUs: the result names its CPU
+    (row,) = res["rows"]
+    assert row["mode"] == "sparse" and row["ate"] == pytest.approx(run["ate_se3_rmse_m"])
+    assert "textured   sparse" in capsys.readouterr().out
+
+
+def test_an_unknown_runtime_key_is_refused_before_anything_is_rendered(tmp_path):
+    with pytest.raises(ValueError, match="unknown setting runtime.backend.no_such_key"):
+        bench_dense.main(_argv(tmp_path, "--slam-set", "backend.no_such_key=1"))
+    assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()

@@ -213,6 +213,11 @@ def test_03_trajectories_tiny(tmp_path, sim_cache):
     assert rows[("textured", "dense_gt_eq13_14")]["rmse_b"] < 1e-3 < rows[("textured", "dense_eq13_14")]["rmse_b"]
     assert "| textured | dense, Eq. 13 + 14 | 1 |" in res["table"]
     assert set(res["bars"]) >= {"textured_dense_ate_le_sparse", "whitewall_dense_ate_le_0.9_sparse"}
+    (coast,) = res["coast"]  # bench_coast on the whitewall runs: the split repeats each run's ATE (same alignment)
+    assert set(coast["runs"]) == set(params["MODES"])
+    for mode, split in coast["runs"].items():
+        assert split["ate"] == pytest.approx(rows[("whitewall", mode)]["ate"], rel=1e-6)
+    assert coast["+ wall distance per axis"][0] <= coast["end pose+vel per axis"][0]
     for png in ("table3_ate.png", "fig10_trajectories.png"):
         assert (out / png).stat().st_size > 1000, png
     assert sum("image/png" in o.get("data", {}) for o in _outputs(nb)) >= 2

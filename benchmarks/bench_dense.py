@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_slam import make_config  # noqa: E402
+from benchmarks.bench_slam import make_config, parse_value  # noqa: E402
 from benchmarks.common import cpu_model  # noqa: E402
 from runtime.dense import DenseConfig  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
@@ -83,9 +83,11 @@ def sequence(data: Path, preset: str, duration: float, seed: int, scale: float) 
     return out
 
 
-def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
-    import yaml
+#: DenseConfig keys that a mode decides (which residuals, which depth); ``--set`` changes the others
+MODE_KEYS = ("use_depth_residual", "use_consistency", "depth_source")
 
+
+def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
     base = MODES[mode]
     if base is None:
         return None
@@ -94,8 +96,8 @@ def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
         k, sep, v = s.partition("=")
         if not sep:
             raise SystemExit(f"bench_dense: --set needs key=value, got {s!r}")
-        d[k] = yaml.safe_load(v)
-    d.update(base)  # the mode decides the residuals
+        d[k] = parse_value(v)
+    d.update({k: base[k] for k in MODE_KEYS})  # the mode decides the residuals and the depth source
     d.setdefault("save_maps", False)
     return DenseConfig.from_dict(d)
 
@@ -190,7 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--scale", type=float, default=1.0, help="image scale of the rendered sequences")
     ap.add_argument("--modes", nargs="+", default=list(DEFAULT_MODES), choices=list(MODES))
-    ap.add_argument("--set", nargs="*", default=[], help="DenseConfig overrides key=value")
+    ap.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        help="DenseConfig overrides key=value for every dense mode (not the keys a mode decides: "
+        + ", ".join(MODE_KEYS)
+        + ")",
+    )
     ap.add_argument(
         "--slam-set",
         nargs="*",

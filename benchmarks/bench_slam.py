@@ -56,13 +56,28 @@ def _load_preset(name: str) -> dict:
     return yaml.safe_load(path.read_text()) or {}
 
 
-def _apply(d: dict, key: str, value: str) -> None:
+def parse_value(text: str):
+    """A command-line value as YAML, with ``1e-5`` read as a number (YAML 1.1 wants ``1.0e-5``).
+
+    >>> [parse_value(t) for t in ("1e-5", "8", "false", "null", "full")]
+    [1e-05, 8, False, None, 'full']
+    """
     import yaml
 
+    v = yaml.safe_load(text)
+    if isinstance(v, str):
+        try:
+            return float(v)
+        except ValueError:
+            return v
+    return v
+
+
+def _apply(d: dict, key: str, value: str) -> None:
     parts = key.split(".")
     for p in parts[:-1]:
         d = d.setdefault(p, {})
-    d[parts[-1]] = yaml.safe_load(value)
+    d[parts[-1]] = parse_value(value)
 
 
 def make_config(preset: str, overrides: list[str]) -> SlamConfig:

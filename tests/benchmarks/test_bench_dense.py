@@ -33,3 +33,11 @@ def test_an_unknown_runtime_key_is_refused_before_anything_is_rendered(tmp_path)
     with pytest.raises(ValueError, match="unknown setting runtime.backend.no_such_key"):
         bench_dense.main(_argv(tmp_path, "--slam-set", "backend.no_such_key=1"))
     assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()
+
+
+def test_dense_overrides_leave_the_mode_its_residuals_and_parse_numbers():
+    cfg = bench_dense._dense_cfg("dense_gt_eq14", ["sigma_per_b=3", "use_depth_residual=true", "edge_rel=5e-2"])
+    assert cfg.sigma_per_b == 3.0 and cfg.edge_rel == pytest.approx(0.05)  # "5e-2" is a number, not a string
+    assert cfg.use_depth_residual is False and cfg.use_consistency and cfg.depth_source == "ground_truth"
+    assert bench_dense._dense_cfg("dense_gt_eq14", []).sigma_per_b == pytest.approx(2**0.5)  # the mode's default
+    assert bench_dense._dense_cfg("sparse", ["edge_rel=0.05"]) is None

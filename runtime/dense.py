@@ -93,6 +93,10 @@ class DenseConfig:
         measure_approx_error: decode the final codes once more to measure the approximation's error.
         geo_eff_rows, consis_eff_rows: effective independent rows of one keyframe's Eq. 13 rows and of one
             pair's Eq. 14 rows (:class:`runtime.backend.depth_factors.DepthFactorConfig`; None: independent).
+        start_after_s: seconds after the first keyframe (the initialisation) before codes and depth factors
+            join the window's optimisations (0: from the first one). While the visual-inertial scale and
+            gravity are still converging, a biased depth network pulls them, and that early error stays in the
+            trajectory (marginalised keyframes are not revisited).
         fill_recent: when fewer than ``n_code_keyframes`` keyframes are co-visible with the newest (visual
             tracking lost on a textureless stretch), fill the code keyframes with the most recent ones.
         bridge_span: the relocalisation's coast bridge (:meth:`runtime.backend.graph.SlidingWindowBackend.bridge`)
@@ -114,8 +118,9 @@ class DenseConfig:
             as independent they pull the trajectory. ATE, 60 s, seed 0 whitewall / mean of seeds 0-2
             textured: 4x ``sqrt(2)`` 0.118 m / 0.0056 m, 8x 0.037 m / 0.0043 m (sparse 0.028 m / 0.0043 m).
             ``geo_eff_rows`` / ``consis_eff_rows`` scale by the row count instead.
-        min_sigma, geo_huber_k, consis_huber_k, chunk_size: depth factor settings
-            (:class:`runtime.backend.depth_factors.DepthFactorConfig`).
+        min_sigma, geo_huber_k, consis_huber_k, chunk_size, edge_rel: depth factor settings
+            (:class:`runtime.backend.depth_factors.DepthFactorConfig`; ``edge_rel``: rows on a depth edge of
+            the decoded map are not used).
         max_rel_uncertainty, voxel, max_depth: dense map filter (:class:`runtime.dense_map.DenseMapConfig`).
         save_maps: write per-keyframe depth / uncertainty maps.
         seed: sampler seed (combined with the keyframe id).
@@ -136,6 +141,8 @@ class DenseConfig:
     chunk_size: int = 32
     geo_eff_rows: float | None = None
     consis_eff_rows: float | None = None
+    edge_rel: float | None = None
+    start_after_s: float = 0.0
     fill_recent: bool = False
     bridge_span: int = 0
     depth_source: str = "network"
@@ -152,6 +159,8 @@ class DenseConfig:
             raise ValueError(f"n_code_keyframes={self.n_code_keyframes}: must be >= 1")
         if self.bridge_span < 0:
             raise ValueError(f"bridge_span={self.bridge_span}: must be >= 0")
+        if not self.start_after_s >= 0:
+            raise ValueError(f"start_after_s={self.start_after_s}: must be >= 0")
         if self.n_consis < 1:
             raise ValueError(f"n_consis={self.n_consis}: must be >= 1")
         if self.relin_threshold < 0:
@@ -180,6 +189,7 @@ class DenseConfig:
             check_shapes=False,
             geo_eff_rows=self.geo_eff_rows,
             consis_eff_rows=self.consis_eff_rows,
+            edge_rel=self.edge_rel,
         )
 
 
@@ -291,6 +301,7 @@ class _FixedDepth:
 @dataclass
 class _Stats:
     n_optim: int = 0
+    n_skipped: int = 0  # optimisations before start_after_s
     n_bridge_factors: int = 0
     n_code_kfs: list = field(default_factory=list)
     n_geo_rows: list = field(default_factory=list)
@@ -339,6 +350,7 @@ class DenseMapper:
         self.per_kf_metrics: dict[int, dict] = {}
         self.archive: dict[int, _FixedDepth] = {}  # marginalised keyframes' final depths (coast bridge)
         self.stats = _Stats()
+        self.t_first_ns: int | None = None  # the first keyframe's time (start_after_s counts from it)
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray) -> None:
@@ -351,6 +363,8 @@ class DenseMapper:
             feat_uv_u: (F, 2) undistorted pixels of the keyframe's tracked features (for the sampler).
         """
         t0 = time.perf_counter()
+        if self.t_first_ns is None:
+            self.t_first_ns = int(backend.keyframes[kf_id].ts)
         for k in [k for k in self.kfs if k not in backend.keyframes]:  # a reset cleared the window
             del self.kfs[k]
         und = self.camera.undistort_image(image)
@@ -406,12 +420,20 @@ class DenseMapper:
                     out.append(k)
         return out
 
+    def _started(self, backend) -> bool:
+        newest = backend.keyframes[backend.active[-1]]
+        return self.t_first_ns is not None and (newest.ts - self.t_first_ns) * 1e-9 >= self.cfg.start_after_s
+
     def add_factors(self, backend, graph, values) -> None:
         import gtsam
         from gtsam.symbol_shorthand import C, L, X
 
         t0 = time.perf_counter()
         cfg = self.cfg
+        if cfg.start_after_s > 0 and not self._started(backend):
+            self.code_kfs = []
+            self.stats.n_skipped += 1
+            return
         self.code_kfs = sel = self._select(backend)
         Cd = self.net.code_dim
         prior_noise = gtsam.noiseModel.Isotropic.Sigma(Cd, cfg.code_prior_sigma)
@@ -436,6 +458,8 @@ class DenseMapper:
                         where = {"landmarks_w": np.array([backend.landmarks[j].X_w for j in ids])}
                     else:
                         where = {"landmark_keys": [L(j) for j in ids]}
+                    if cfg.edge_rel is not None:
+                        where["depth_map"] = d.provider.depth(d.code)
                     facs = make_geometric_depth_factors(X(k), C(k), uvn, d.provider, self.T_b_c, cfg=self.fcfg, **where)
                     for f in facs:
                         graph.push_back(f)
@@ -597,6 +621,7 @@ class DenseMapper:
             "dense_map_points": int(xyz.shape[0]),
             "dense_window_keyframes": len(active),
             "dense_optimisations": st.n_optim,
+            "dense_optimisations_before_start": st.n_skipped,
             "dense_mean_code_keyframes": float(np.mean(st.n_code_kfs)) if st.n_code_kfs else 0.0,
             "dense_mean_geo_rows": float(np.mean(st.n_geo_rows)) if st.n_geo_rows else 0.0,
             "dense_mean_consis_rows": float(np.mean(st.n_consis_rows)) if st.n_consis_rows else 0.0,

@@ -34,6 +34,16 @@ Conventions:
   residual can lower the cost by leaving the view; between overlapping keyframes whose poses are also held by
   the reprojection and IMU factors this is a small effect (freezing the validity mask at build time is the
   alternative should it show up).
+* **Depth edges** (``edge_rel``): a row whose depth lookup sits on a depth discontinuity is not used. The
+  depth at an occlusion edge belongs to either surface, and the bilinear gradient across the edge (Eq. 14's
+  ``d_k1`` at ``P1``) is metres per pixel: such a row is a large outlier whose Jacobian is wrong in direction,
+  and a Huber kernel bounds its residual's pull but not its Jacobian's size. The test
+  (:func:`depth_edge_ratio`): over the 3x3 pixels around the lookup, ``(max - min) / min > edge_rel``.
+  Eq. 13 drops such observations when the factors are built; Eq. 14 drops such samples of ``k2`` when the
+  factor is built and, at each evaluation, silences rows whose ``P1`` lands on an edge of ``d_k1`` (as for
+  leaving the image). Measured with the rendered depth at the true poses (textured, 60 s, 84 pairs of frames
+  6-15 apart, 300 samples each): 0.35 % of Eq. 14 rows were off by more than 5 cm, up to 1 m; with
+  ``edge_rel=0.05`` 1.1 % of the rows were dropped and 0.04 % stayed above 5 cm.
 
 Speed: the error functions are numpy over all rows (no Python loop per point); reading the landmarks of a
 factor from ``gtsam.Values`` is one ``atPoint3`` call per landmark (~0.7 us each). A Python factor costs about
@@ -66,6 +76,7 @@ __all__ = [
     "bilinear",
     "inside_image",
     "depth_sigma",
+    "depth_edge_ratio",
     "geometric_residuals",
     "ConsistencyResult",
     "consistency_residuals",
@@ -116,6 +127,7 @@ class DepthFactorConfig:
             ``sqrt(max(n / eff_rows, 1))`` (:func:`correlation_inflation`), which gives the rows together the
             information of ``eff_rows`` independent ones.
         min_depth: smallest depth [m] in ``k1`` for a consistency sample to count.
+        edge_rel: depth-edge test of both residuals (module doc, :func:`depth_edge_ratio`); None: off.
         check_shapes: assert every Jacobian's shape at each linearisation (cheap; GTSAM accepts wrong shapes).
     """
 
@@ -129,8 +141,11 @@ class DepthFactorConfig:
     check_shapes: bool = True
     geo_eff_rows: float | None = None
     consis_eff_rows: float | None = None
+    edge_rel: float | None = None
 
     def __post_init__(self) -> None:
+        if self.edge_rel is not None and not self.edge_rel > 0:
+            raise ValueError(f"edge_rel={self.edge_rel}: must be > 0 (or None: no depth-edge test)")
         if not self.sigma_per_b > 0:
             raise ValueError(f"sigma_per_b={self.sigma_per_b}: must be > 0")
         if not self.min_sigma > 0:
@@ -212,6 +227,37 @@ class Bilinear:
 def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear lookup of an (H, W) or (H, W, C) map at pixels (N, 2) (clamped to the image)."""
     return Bilinear(uv, np.asarray(img).shape[:2]).sample(img)
+
+
+def depth_edge_ratio(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Relative depth range ``(max - min) / min`` (N,) over the 3x3 pixels around each pixel ``uv`` (N, 2)
+    (the nearest pixel and its neighbours, clamped to the image) of an (H, W) depth map; ``inf`` where a
+    depth there is not positive or not finite. Large on depth discontinuities, about ``2 tan(angle) / f`` on
+    a plane seen at ``angle`` from face-on with focal length ``f`` [px].
+
+    >>> D = np.ones((4, 6)); D[:, 3:] = 2.0                     # an edge between columns 2 and 3
+    >>> depth_edge_ratio(D, np.array([[0.0, 1.0], [2.2, 1.0], [4.6, 2.0]])).tolist()
+    [0.0, 1.0, 0.0]
+    """
+    D = np.asarray(depth, dtype=np.float64)
+    H, W = D.shape[:2]
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    u = np.clip(np.floor(np.nan_to_num(uv[:, 0]) + 0.5), 0, W - 1).astype(np.int64)
+    v = np.clip(np.floor(np.nan_to_num(uv[:, 1]) + 0.5), 0, H - 1).astype(np.int64)
+    d = np.stack(
+        [D[np.clip(v + dy, 0, H - 1), np.clip(u + dx, 0, W - 1)] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], -1
+    )
+    lo = d.min(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = (d.max(-1) - lo) / lo
+    return np.where(np.isfinite(d).all(-1) & (lo > 0), ratio, np.inf)
+
+
+def _not_on_edge(depth: np.ndarray, uv: np.ndarray, edge_rel: float | None) -> np.ndarray:
+    """Mask (N,) of the pixels that pass the depth-edge test (all of them when ``edge_rel`` is None)."""
+    if edge_rel is None:
+        return np.ones(np.asarray(uv).reshape(-1, 2).shape[0], dtype=bool)
+    return depth_edge_ratio(depth, uv) <= edge_rel
 
 
 def depth_sigma(uncertainty_at: np.ndarray, cfg: DepthFactorConfig) -> np.ndarray:
@@ -297,13 +343,15 @@ def make_geometric_depth_factors(
     landmark_keys: Sequence[int] | None = None,
     landmarks_w: np.ndarray | None = None,
     cfg: DepthFactorConfig | None = None,
+    depth_map: np.ndarray | None = None,
 ) -> list:
     """Eq. 13 factors of one code keyframe.
 
     Give either ``landmark_keys`` (landmarks are graph variables ``L(j)``; the rows are split into factors
     of ``cfg.chunk_size`` landmarks, keys ``[pose_key, code_key, L...]``) or ``landmarks_w`` (fixed
     positions; one factor with keys ``[pose_key, code_key]``). Observations whose pixel is outside the
-    network image are dropped (:func:`inside_image` tells which).
+    network image are dropped (:func:`inside_image` tells which), and with ``cfg.edge_rel`` those on a depth
+    edge of ``depth_map`` (module doc).
 
     Args:
         pose_key, code_key: keys of ``X(k)`` (Pose3 ``T_w_b``) and ``C(k)`` (Vector(C)).
@@ -313,10 +361,11 @@ def make_geometric_depth_factors(
         T_b_c: (4, 4) camera-to-body.
         landmark_keys: (M,) distinct keys of ``L(j)`` (Point3 in the world), or None.
         landmarks_w: (M, 3) fixed landmark positions [m], or None.
-        cfg: settings (sigma conversion, Huber, chunking).
+        cfg: settings (sigma conversion, Huber, chunking, edge test).
+        depth_map: (H, W) decoded depth at the keyframe's current code (needed with ``cfg.edge_rel``).
 
     Returns:
-        list of ``gtsam.CustomFactor`` (empty when no observation is inside the image).
+        list of ``gtsam.CustomFactor`` (empty when no observation is usable).
     """
     cfg = cfg or DepthFactorConfig()
     T_b_c = _check_T(T_b_c, "T_b_c")
@@ -336,6 +385,12 @@ def make_geometric_depth_factors(
     B = np.asarray(provider.uncertainty)
     shape = B.shape[:2]
     keep = inside_image(uv, shape)
+    if cfg.edge_rel is not None:
+        if depth_map is None:
+            raise ValueError("cfg.edge_rel needs the depth map at the current code (depth_map)")
+        if np.shape(depth_map)[:2] != shape:
+            raise ValueError(f"depth_map has shape {np.shape(depth_map)}, the uncertainty map {shape}")
+        keep &= _not_on_edge(depth_map, uv, cfg.edge_rel)
     if not keep.any():
         return []
     uv = uv[keep]
@@ -424,6 +479,7 @@ def consistency_residuals(
     J2: np.ndarray | None = None,
     min_depth: float = 0.05,
     pose_jacobians: bool = False,
+    edge_rel: float | None = None,
 ) -> ConsistencyResult:
     """Depth consistency residuals (Eq. 14) of samples ``P2`` of keyframe k2 against keyframe k1.
 
@@ -440,6 +496,8 @@ def consistency_residuals(
         min_depth: smallest valid depth [m] in k1.
         pose_jacobians: without ``J1, J2``, the pose Jacobians all the same (the code ones are None: fixed
             depth maps).
+        edge_rel: rows whose ``P1`` is on a depth edge of ``depth1`` (:func:`depth_edge_ratio`) are not
+            valid; None: no test.
 
     Returns:
         :class:`ConsistencyResult`.
@@ -459,6 +517,8 @@ def consistency_residuals(
     uv1 = np.stack([fx * p_c1[:, 0] / zs + cx, fy * p_c1[:, 1] / zs + cy], -1)
     lookup1 = Bilinear(uv1, (H, W))
     valid = front & lookup1.inside
+    if edge_rel is not None:
+        valid &= _not_on_edge(depth1, uv1, edge_rel)
     d1, gu, gv = lookup1.sample_grad(depth1)
     r = np.where(valid, d1 - z1, 0.0)
     # dr/dp_c1 = g^T dP1/dp_c1 - e3  (S, 3)
@@ -531,7 +591,8 @@ def make_consistency_factor(
         cfg: settings.
 
     Returns:
-        ``gtsam.CustomFactor`` with S rows (samples outside k2's image are dropped first).
+        ``gtsam.CustomFactor`` with S rows (samples outside k2's image, and with ``cfg.edge_rel`` those on a
+        depth edge of k2's map at ``init_codes``, are dropped first).
     """
     cfg = cfg or DepthFactorConfig()
     T_b_c = _check_T(T_b_c, "T_b_c")
@@ -543,16 +604,17 @@ def make_consistency_factor(
     fx, fy, cx, cy = (float(k) for k in K)
     if not (fx > 0 and fy > 0):
         raise ValueError(f"K={tuple(K)}: focal lengths must be > 0")
-    uv2 = np.asarray(uv2, dtype=np.float64).reshape(-1, 2)
-    uv2 = uv2[inside_image(uv2, shape)]
-    if uv2.shape[0] == 0:
-        raise ValueError("no consistency sample inside the image")
-    lookup2 = Bilinear(uv2, shape)
-    rays2 = np.stack([(uv2[:, 0] - cx) / fx, (uv2[:, 1] - cy) / fy, np.ones(uv2.shape[0])], -1)
     T1 = _check_T(init_poses[0], "init_poses[0]")
     T2 = _check_T(init_poses[1], "init_poses[1]")
     depths0 = (p1.depth(np.asarray(init_codes[0])), p2.depth(np.asarray(init_codes[1])))
-    res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, min_depth=cfg.min_depth)
+    uv2 = np.asarray(uv2, dtype=np.float64).reshape(-1, 2)
+    uv2 = uv2[inside_image(uv2, shape) & _not_on_edge(depths0[1], uv2, cfg.edge_rel)]
+    if uv2.shape[0] == 0:
+        raise ValueError("no consistency sample inside the image (and off depth edges)")
+    lookup2 = Bilinear(uv2, shape)
+    rays2 = np.stack([(uv2[:, 0] - cx) / fx, (uv2[:, 1] - cy) / fy, np.ones(uv2.shape[0])], -1)
+    ekw = {"min_depth": cfg.min_depth, "edge_rel": cfg.edge_rel}
+    res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, **ekw)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
     kx1, kx2 = (int(k) for k in pose_keys)
@@ -568,13 +630,11 @@ def make_consistency_factor(
         c1 = np.asarray(values.atVector(kc1), dtype=np.float64)
         c2 = np.asarray(values.atVector(kc2), dtype=np.float64)
         if not want_jacobians:
-            res = consistency_residuals(
-                T_w_b1, T_w_b2, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), min_depth=cfg.min_depth
-            )
+            res = consistency_residuals(T_w_b1, T_w_b2, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **ekw)
             return res.r, None
         d1, J1 = p1.jacobian(c1)
         d2, J2 = p2.jacobian(c2)
-        res = consistency_residuals(T_w_b1, T_w_b2, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, cfg.min_depth)
+        res = consistency_residuals(T_w_b1, T_w_b2, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **ekw)
         return res.r, list(res.jacobians)
 
     C1, C2 = _code_dim(p1), _code_dim(p2)
@@ -606,6 +666,7 @@ def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigm
             d2,
             min_depth=cfg.min_depth,
             pose_jacobians=want_jacobians,
+            edge_rel=cfg.edge_rel,
         )
         return res.r, (list(res.jacobians[:2]) if want_jacobians else None)
 

@@ -170,6 +170,38 @@ def test_code_keyframes_fall_back_to_the_most_recent_when_nothing_is_covisible()
         assert m._select(Backend()) == want
 
 
+def test_depth_factors_wait_start_after_s_from_the_first_keyframe():
+    class Kf:
+        def __init__(self, ts):
+            self.ts = ts
+
+    class Backend:
+        keyframes = {0: Kf(10**9), 1: Kf(3 * 10**9), 2: Kf(6 * 10**9 - 1), 3: Kf(6 * 10**9)}
+        active = [0]
+        kf_obs = {}
+
+        def covisible_keyframes(self, kf, n):
+            return []
+
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg = DenseConfig(start_after_s=5.0)
+    m.net = type("Net", (), {"code_dim": 8})()
+    m.kfs, m.stats, m.timers, m.t_first_ns = {}, _Stats(), defaultdict(float), 10**9
+    b = Backend()
+    for newest, started in ((1, False), (2, False), (3, True)):
+        b.active = [0, newest]
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        m.add_factors(b, graph, values)
+        assert m._started(b) is started
+    assert (m.stats.n_skipped, m.stats.n_optim) == (2, 1)  # 4.999999999 s after the first keyframe: not yet
+    m.cfg = DenseConfig()  # start_after_s = 0: from the first optimisation on
+    b.active = [0, 1]
+    m.add_factors(b, gtsam.NonlinearFactorGraph(), gtsam.Values())
+    assert (m.stats.n_skipped, m.stats.n_optim) == (2, 2)
+    with pytest.raises(ValueError, match="start_after_s"):
+        DenseConfig(start_after_s=-1.0)
+
+
 def test_bridge_factors_hold_archived_depth_maps_against_the_wall():
     # a camera backing away from the wall x = 3 in four keyframes; 0 and 1 left the window (their depth maps
     # are archived while their states are), 2 and 3 are active; keyframe 9 was archived and then forgotten

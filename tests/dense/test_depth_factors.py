@@ -13,6 +13,7 @@ from runtime.backend.depth_factors import (
     DepthFactorConfig,
     consistency_residuals,
     correlation_inflation,
+    depth_edge_ratio,
     inside_image,
     make_consistency_factor,
     make_geometric_depth_factors,
@@ -329,6 +330,84 @@ def test_consistency_sigmas_propagate_both_maps():
     np.testing.assert_allclose(sig["full"], np.sqrt(s**2 + (res.dr_dd2 * s) ** 2), rtol=1e-9)
     np.testing.assert_allclose(sig["z"], 0.04, rtol=1e-9)
     assert np.all(np.abs(sig["full"] - sig["z"]) > 1e-4)
+
+
+# --------------------------------------------------------------------------- depth edges
+def board_depth(T_w_b, shape=(H, W)):
+    """Depth (H, W) of a wall ``x_w = 3`` with a board ``x_w = 2`` in front of it covering ``y_w > 0`` (the
+    left of a camera looking along +x): one occlusion edge, fronto-parallel surfaces (bilinear-exact)."""
+    wall = plane_depth(T_w_b, K, shape, 3.0)
+    near = plane_depth(T_w_b, K, shape, 2.0)
+    Hh, Ww = shape
+    fx, fy, cx, cy = K
+    v, u = np.mgrid[0:Hh, 0:Ww].astype(np.float64)
+    T_w_c = T_w_b @ T_B_C
+    rays_w = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1) @ T_w_c[:3, :3].T
+    y_hit = T_w_c[1, 3] + near * rays_w[..., 1]  # where the ray meets the board's plane
+    return np.where(y_hit > 0, near, wall)
+
+
+def test_depth_edge_ratio_on_a_board():
+    T = body_pose(t=(0.0, 0.0, 0.0))
+    D = board_depth(T)
+    edge_col = int(np.argmax(np.diff(D[H // 2]) != 0))  # last column on the board
+    assert D[H // 2, 0] == pytest.approx(2.0) and D[H // 2, -1] == pytest.approx(3.0)
+    uv = np.array([[2.0, 10.0], [edge_col + 0.4, 20.0], [edge_col + 1.0, 5.0], [W - 3.0, 40.0], [-5.0, 3.0]])
+    e = depth_edge_ratio(D, uv)
+    np.testing.assert_allclose(e, [0.0, 0.5, 0.5, 0.0, 0.0], atol=1e-12)  # (3 - 2) / 2 next to the edge
+    assert depth_edge_ratio(np.where(D > 2.5, 0.0, D), uv)[3] == np.inf  # an invalid depth nearby
+
+
+def test_geometric_rows_on_a_depth_edge_are_dropped():
+    T = body_pose(t=(0.0, 0.0, 0.0))
+    D = board_depth(T)
+    edge_col = int(np.argmax(np.diff(D[H // 2]) != 0))
+    uv = np.array([[5.0, 10.0], [edge_col + 0.5, 20.0], [W - 5.0, 30.0], [edge_col, 40.0], [edge_col + 2.0, 8.0]])
+    X_w = wall_points(T, uv, Bilinear(uv, D.shape).sample(D))
+    prov = LinearDepth(D, np.zeros((CD, H, W)))
+    cfg = DepthFactorConfig(geo_huber_k=None, edge_rel=0.05)
+    (f,) = make_geometric_depth_factors(X(0), C(0), uv, prov, T_B_C, landmarks_w=X_w, cfg=cfg, depth_map=D)
+    assert f.dim() == 3  # the two observations whose nearest pixel is next to the edge are gone
+    (g,) = make_geometric_depth_factors(X(0), C(0), uv, prov, T_B_C, landmarks_w=X_w, cfg=NO_ROBUST)
+    assert g.dim() == 5
+    with pytest.raises(ValueError, match="depth_map"):
+        make_geometric_depth_factors(X(0), C(0), uv, prov, T_B_C, landmarks_w=X_w, cfg=cfg)
+    with pytest.raises(ValueError, match="edge_rel"):
+        DepthFactorConfig(edge_rel=0.0)
+
+
+def test_consistency_rows_on_a_depth_edge_are_silent_or_dropped():
+    """At the true poses Eq. 14 on a board in front of a wall is exact except at the occlusion edge, where
+    rows are off by up to the 1 m step; the edge test removes exactly those."""
+    T1 = body_pose(t=(0.0, 0.0, 0.0))
+    T2 = body_pose(t=(-0.3, 0.25, 0.05))  # k2 further back and to the left
+    D1, D2 = board_depth(T1), board_depth(T2)
+    v, u = np.mgrid[1 : H - 1, 1 : W - 1]
+    uv2 = np.stack([u.ravel(), v.ravel()], -1).astype(np.float64)  # every pixel of k2 off the border
+    fx, fy, cx, cy = K
+    rays = np.stack([(uv2[:, 0] - cx) / fx, (uv2[:, 1] - cy) / fy, np.ones(len(uv2))], -1)
+    lk = Bilinear(uv2, (H, W))
+    plain = consistency_residuals(T1, T2, T_B_C, K, lk, rays, D1, D2)
+    assert np.abs(plain.r).max() > 0.3 and plain.valid.mean() > 0.7
+    edged = consistency_residuals(T1, T2, T_B_C, K, lk, rays, D1, D2, edge_rel=0.05)
+    assert not np.any(edged.valid & ~plain.valid)
+    np.testing.assert_allclose(edged.r[edged.valid], 0.0, atol=1e-9)  # only P1 on k1's edge is left out ...
+    off_edge1 = depth_edge_ratio(D1, plain.uv1) <= 0.05
+    assert np.array_equal(edged.valid, plain.valid & off_edge1)
+    big = np.abs(plain.r) > 1e-6
+    assert big.sum() >= 5 and not np.any(edged.valid & big)
+    # ... and the factor drops k2's samples on k2's edge when it is built
+    provs = (LinearDepth(D1, np.zeros((CD, H, W))), LinearDepth(D2, np.zeros((CD, H, W))))
+    zero = (np.zeros(CD), np.zeros(CD))
+    cfg = DepthFactorConfig(consis_huber_k=None, edge_rel=0.05)
+    f = make_consistency_factor((X(0), X(1)), (C(0), C(1)), provs, uv2, K, T_B_C, (T1, T2), zero, cfg)
+    n_edge2 = int(np.sum(depth_edge_ratio(D2, uv2) > 0.05))
+    assert n_edge2 >= H - 2 and f.dim() == len(uv2) - n_edge2
+    vals = pair_values((T1, T2), zero)
+    np.testing.assert_allclose(f.unwhitenedError(vals), 0.0, atol=1e-9)
+    # away from the truth the rows off the edges are smooth in the poses: analytic = numerical Jacobians
+    T2b = T2 @ gtsam.Pose3.Expmap(np.array([0.002, -0.001, 0.001, 0.004, -0.003, 0.002])).matrix()
+    assert_jacobians_match(f, pair_values((T1, T2b), zero), rtol=1e-4)
 
 
 # --------------------------------------------------------------------------- code recovery (LM)

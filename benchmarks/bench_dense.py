@@ -40,8 +40,8 @@ from runtime.slam import run_sequence  # noqa: E402
 
 MODES = {
     "sparse": None,
-    "dense_eq13": {"use_depth_residual": True, "use_consistency": False},
-    "dense_eq13_14": {"use_depth_residual": True, "use_consistency": True},
+    "dense_eq13": {"use_depth_residual": True, "use_consistency": False, "depth_source": "network"},
+    "dense_eq13_14": {"use_depth_residual": True, "use_consistency": True, "depth_source": "network"},
     # the upper bound: Eq. 13 + 14 with the rendered depth in place of the network's prior (DenseConfig
     # depth_source); what a perfect depth network would buy on the same sequences. Its rows use the Laplace
     # sigma sqrt(2) * oracle_b: the rendered depth has no correlated error field to inflate for.

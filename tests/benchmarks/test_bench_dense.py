@@ -41,3 +41,5 @@ def test_dense_overrides_leave_the_mode_its_residuals_and_parse_numbers():
     assert cfg.use_depth_residual is False and cfg.use_consistency and cfg.depth_source == "ground_truth"
     assert bench_dense._dense_cfg("dense_gt_eq14", []).sigma_per_b == pytest.approx(2**0.5)  # the mode's default
     assert bench_dense._dense_cfg("sparse", ["edge_rel=0.05"]) is None
+    net = bench_dense._dense_cfg("dense_eq13", ["depth_source=ground_truth", "start_after_s=5"])
+    assert net.depth_source == "network" and not net.use_consistency and net.start_after_s == 5.0

@@ -46,7 +46,7 @@ def runs(seq8, tmp_path_factory):
 
     DepthNetwork.decode = spy
     try:
-        m_dense = run_sequence(read_euroc(seq8), dense_out, dense=DenseConfig(n_consis=200), progress=False, plot=False)
+        m_dense = run_sequence(read_euroc(seq8), dense_out, dense=DenseConfig(n_consis=200, start_after_s=2.0), progress=False, plot=False)
     finally:
         DepthNetwork.decode = orig
     return sparse_out, m_sparse, dense_out, m_dense, calls
@@ -75,6 +75,7 @@ def test_dense_run_completes_writes_outputs_and_keeps_the_ate_bounded(runs):
     assert set(t) >= {"network", "factor_building", "optimisation"} and all(v >= 0 for v in t.values())
     assert saved["dense_mean_code_keyframes"] > 2 and saved["dense_mean_consis_rows"] > 0
     assert saved["dense_mean_geo_rows"] > 0
+    assert saved["dense_optimisations_before_start"] > 0 and saved["dense_optimisations"] > 0  # 2 s waited
     # the sparse run writes none of the dense outputs
     assert not (sparse_out / "dense_map.ply").exists() and "depth_metrics" not in m_sparse
 
@@ -194,7 +195,7 @@ def test_depth_factors_wait_start_after_s_from_the_first_keyframe():
         m.add_factors(b, graph, values)
         assert m._started(b) is started
     assert (m.stats.n_skipped, m.stats.n_optim) == (2, 1)  # 4.999999999 s after the first keyframe: not yet
-    m.cfg = DenseConfig()  # start_after_s = 0: from the first optimisation on
+    m.cfg = DenseConfig(start_after_s=0.0)  # from the first optimisation on
     b.active = [0, 1]
     m.add_factors(b, gtsam.NonlinearFactorGraph(), gtsam.Values())
     assert (m.stats.n_skipped, m.stats.n_optim) == (2, 2)
@@ -266,6 +267,7 @@ def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):
             "max_frames=110",
             "dense_settings.use_consistency=false",
             "dense_settings.save_maps=false",
+            "dense_settings.start_after_s=0",  # 110 frames: the default wait would leave no dense optimisation
         ]
     )
     text = capsys.readouterr().out

@@ -121,7 +121,9 @@ class DenseConfig:
             one smooth field, so hundreds of rows on a map are worth a handful of independent ones; treated
             as independent they pull the trajectory. ATE, 60 s, seed 0 whitewall / mean of seeds 0-2
             textured: 4x ``sqrt(2)`` 0.118 m / 0.0056 m, 8x 0.037 m / 0.0043 m (sparse 0.028 m / 0.0043 m).
-            ``geo_eff_rows`` / ``consis_eff_rows`` scale by the row count instead.
+            ``geo_eff_rows`` / ``consis_eff_rows`` scale by the row count instead. With ``edge_rel`` and
+            ``start_after_s`` in place, 4x ``sqrt(2)`` gave better optimised depth on every run but no
+            consistent ATE change over 8 seeds (``benchmarks/results/dense_ablations/``).
         min_sigma, geo_huber_k, consis_huber_k, chunk_size, edge_rel: depth factor settings
             (:class:`runtime.backend.depth_factors.DepthFactorConfig`; ``edge_rel``: rows on a depth edge of
             the decoded map are not used; 0.05 was chosen from the rendered depth at the true poses, where

@@ -359,6 +359,7 @@ class DenseMapper:
         self.archive: dict[int, _FixedDepth] = {}  # marginalised keyframes' final depths (coast bridge)
         self.stats = _Stats()
         self.t_first_ns: int | None = None  # the first keyframe's time (start_after_s counts from it)
+        self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray) -> None:
@@ -624,6 +625,7 @@ class DenseMapper:
         )
         xyz, rgb = fuse_depth_maps(depths, poses, self.net_cam, self.T_b_c, uncs, imgs, mcfg)
         write_dense_map(out / "dense_map.ply", xyz, rgb)
+        self.dense_map = (xyz, rgb)  # for the Rerun recording
         st = self.stats
         res = {
             "dense_map_points": int(xyz.shape[0]),

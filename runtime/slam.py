@@ -23,7 +23,8 @@ non-keyframes are stored relative to their keyframe and composed with its final 
 trajectory filler does; ``trajectory_mode=online`` writes the causal estimates instead), ``keyframes.txt``,
 ``sparse_map.ply``, ``metrics.json``, ``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``. With
 ``dense`` (:mod:`runtime.dense`): depth codes and the Eq. 13-14 factors join the window through the backend's
-provider hook, and ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics are written too.
+provider hook, and ``dense_map.ply`` (also into ``slam.rrd``), ``keyframe_depth/`` and the dense metrics are
+written too.
 
 This module never imports torch (checked by a test).
 """
@@ -912,7 +913,7 @@ def run_sequence(
     elif plot and len(ts) >= 2:
         ev.plot_top_view(out / "trajectory_top.png", ts, T, None, None, title=Path(str(seq.root)).name)
     if recorder is not None:
-        recorder.log_final(system, ts, T, pts)
+        recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
         recorder.close()
     (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=2))
     return metrics

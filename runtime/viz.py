@@ -1,4 +1,5 @@
-"""Optional Rerun recording of a SLAM run (``dit-slam viz=rerun``): images, tracks, camera, trajectory, map.
+"""Optional Rerun recording of a SLAM run (``dit-slam viz=rerun``): images, tracks, camera, trajectory, sparse and
+dense maps.
 
 Written to an ``.rrd`` file (open with ``rerun slam.rrd``). Needs ``rerun-sdk`` (``pip install rerun-sdk``);
 nothing else in the runtime imports it. Images are JPEG-compressed and logged every ``image_every`` frames and
@@ -71,14 +72,25 @@ class RerunRecorder:
             if v["X_w"].shape[0]:
                 rec.log("world/window_landmarks", rr.Points3D(v["X_w"], colors=[[40, 220, 60]], radii=0.01))
 
-    def log_final(self, system, ts: np.ndarray, T: np.ndarray, points: np.ndarray) -> None:
-        """The final (refined) trajectory and the whole sparse map."""
+    def log_final(
+        self,
+        system,
+        ts: np.ndarray,
+        T: np.ndarray,
+        points: np.ndarray,
+        dense_map: tuple[np.ndarray, np.ndarray | None] | None = None,
+    ) -> None:
+        """The final (refined) trajectory, the whole sparse map and, with ``dense=true``, the local dense map
+        (``dense_map``: (N, 3) world points and (N, 3) uint8 colours or None, as in ``dense_map.ply``)."""
         rr, rec = self.rr, self.rec
         if len(ts):
             rec.set_time("time", duration=float(ts[-1]) * 1e-9)
             rec.log("world/trajectory_final", rr.LineStrips3D([T[:, :3, 3]], colors=[[60, 120, 240]]))
         if points.shape[0]:
             rec.log("world/sparse_map", rr.Points3D(points, colors=[[200, 200, 200]], radii=0.008))
+        if dense_map is not None and dense_map[0].shape[0]:
+            xyz, rgb = dense_map
+            rec.log("world/dense_map", rr.Points3D(xyz, colors=rgb, radii=0.004))
 
     def close(self) -> None:
         self.rec.flush()

@@ -46,7 +46,8 @@ def runs(seq8, tmp_path_factory):
 
     DepthNetwork.decode = spy
     try:
-        m_dense = run_sequence(read_euroc(seq8), dense_out, dense=DenseConfig(n_consis=200, start_after_s=2.0), progress=False, plot=False)
+        cfg = DenseConfig(n_consis=200, start_after_s=2.0)
+        m_dense = run_sequence(read_euroc(seq8), dense_out, dense=cfg, progress=False, plot=False)
     finally:
         DepthNetwork.decode = orig
     return sparse_out, m_sparse, dense_out, m_dense, calls
@@ -286,3 +287,29 @@ def test_cli_rejects_a_bad_model_and_a_bad_dense_setting(seq8, tmp_path, capsys)
     with pytest.raises(SystemExit) as e:
         slam_main([f"sequence={seq8}", f"out={tmp_path}", "dense=true", "+dense_settings.bogus=1"])
     assert e.value.code == 2 and "dense_settings.bogus" in capsys.readouterr().err
+
+
+def test_the_dense_map_goes_into_the_rerun_recording(seq8, tmp_path, monkeypatch):
+    pytest.importorskip("rerun")
+    from runtime import viz
+
+    seen = {}
+    orig = viz.RerunRecorder.log_final
+
+    def spy(self, system, ts, T, points, dense_map=None):
+        log = self.rec.log
+        seen["paths"] = []
+        self.rec.log = lambda path, *a, **k: (seen["paths"].append(path), log(path, *a, **k))[1]
+        seen["dense_map"] = dense_map
+        orig(self, system, ts, T, points, dense_map=dense_map)
+
+    monkeypatch.setattr(viz.RerunRecorder, "log_final", spy)
+    cfg = DenseConfig(n_consis=50, start_after_s=0.0, save_maps=False, use_consistency=False)
+    run_sequence(read_euroc(seq8), tmp_path, dense=cfg, progress=False, plot=False, viz="rerun", max_frames=100)
+    xyz, rgb = read_ply(tmp_path / "dense_map.ply")
+    got_xyz, got_rgb = seen["dense_map"]
+    assert got_xyz.shape == xyz.shape and xyz.shape[0] > 1000  # the map of dense_map.ply, point for point
+    np.testing.assert_allclose(got_xyz, xyz, atol=1e-4)
+    assert np.array_equal(got_rgb, rgb)
+    assert {"world/sparse_map", "world/dense_map"} <= set(seen["paths"])
+    assert (tmp_path / "slam.rrd").stat().st_size > 10_000

@@ -94,7 +94,8 @@ class DenseConfig:
         geo_eff_rows, consis_eff_rows: effective independent rows of one keyframe's Eq. 13 rows and of one
             pair's Eq. 14 rows (:class:`runtime.backend.depth_factors.DepthFactorConfig`; None: independent).
         start_after_s: seconds after the first keyframe (the initialisation) before codes and depth factors
-            join the window's optimisations (0: from the first one). While the visual-inertial scale and
+            join the window's optimisations (0: from the first one); a re-initialisation after a reset
+            waits again. While the visual-inertial scale and
             gravity are still converging, a biased depth network pulls them, and that early error stays in the
             trajectory (marginalised keyframes are not revisited); the network's sparse-depth input, the map
             points at their current scale, is least reliable then too. Chosen on seeds 0-4 of the 60 s
@@ -358,7 +359,8 @@ class DenseMapper:
         self.per_kf_metrics: dict[int, dict] = {}
         self.archive: dict[int, _FixedDepth] = {}  # marginalised keyframes' final depths (coast bridge)
         self.stats = _Stats()
-        self.t_first_ns: int | None = None  # the first keyframe's time (start_after_s counts from it)
+        self.t_first_ns: int | None = None  # the window's first keyframe's time (start_after_s counts from it)
+        self.armed_for: int | None = None  # the backend's init_kf_id that t_first_ns belongs to
         self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
 
     # ------------------------------------------------------------------ keyframes
@@ -372,8 +374,7 @@ class DenseMapper:
             feat_uv_u: (F, 2) undistorted pixels of the keyframe's tracked features (for the sampler).
         """
         t0 = time.perf_counter()
-        if self.t_first_ns is None:
-            self.t_first_ns = int(backend.keyframes[kf_id].ts)
+        self._arm_start(backend, kf_id)
         for k in [k for k in self.kfs if k not in backend.keyframes]:  # a reset cleared the window
             del self.kfs[k]
         und = self.camera.undistort_image(image)
@@ -428,6 +429,14 @@ class DenseMapper:
                 if k in self.kfs and k not in out:
                     out.append(k)
         return out
+
+    def _arm_start(self, backend, kf_id: int) -> None:
+        """Start the ``start_after_s`` wait at ``kf_id`` when it is the first keyframe after an initialisation
+        (the first of the run, or a re-initialisation after a reset: the backend's ``init_kf_id`` changed)."""
+        init_id = getattr(backend, "init_kf_id", None)
+        if self.t_first_ns is None or init_id != self.armed_for:
+            self.t_first_ns = int(backend.keyframes[kf_id].ts)
+            self.armed_for = init_id
 
     def _started(self, backend) -> bool:
         newest = backend.keyframes[backend.active[-1]]

@@ -230,6 +230,7 @@ class SlidingWindowBackend:
         # a bridged coast kept in the smoother (``smooth_coast``): the anchor's id and priors, and the
         # relocalised keyframe whose departure from the window ends it
         self.coast: _Coast | None = None
+        self.init_kf_id: int | None = None  # the keyframe that started this window (set by initialize)
 
     @property
     def initialized(self) -> bool:
@@ -250,6 +251,7 @@ class SlidingWindowBackend:
         Archived keyframe poses and map points of earlier windows are kept.
         """
         self._clear_window()
+        self.init_kf_id = kf.kf_id
         c = self.cfg
         self._insert_kf(kf)
         pose_noise = pose_prior_noise_world(

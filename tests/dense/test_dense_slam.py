@@ -204,6 +204,32 @@ def test_depth_factors_wait_start_after_s_from_the_first_keyframe():
         DenseConfig(start_after_s=-1.0)
 
 
+def test_depth_factors_wait_again_after_a_reset():
+    class Kf:
+        def __init__(self, ts):
+            self.ts = ts
+
+    class Backend:  # keyframe 0 initialised the first window, keyframe 5 the one after a reset
+        keyframes = {k: Kf(t * 10**9) for k, t in ((1, 1), (2, 3), (6, 20), (7, 24), (8, 25))}
+        init_kf_id = 0
+        active = [1]
+
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg = DenseConfig(start_after_s=5.0)
+    m.t_first_ns = m.armed_for = None
+    b = Backend()
+    for k, want_first in ((1, 1), (2, 1)):  # the first keyframe after the initialisation starts the wait
+        m._arm_start(b, k)
+        assert m.t_first_ns == want_first * 10**9
+    b.active = [2]
+    assert not m._started(b)
+    b.init_kf_id = 5  # reset and re-initialised: the wait starts again at the next keyframe
+    for k, want_first, started in ((6, 20, False), (7, 20, False), (8, 20, True)):
+        m._arm_start(b, k)
+        b.active = [k]
+        assert (m.t_first_ns, m._started(b)) == (want_first * 10**9, started)
+
+
 def test_bridge_factors_hold_archived_depth_maps_against_the_wall():
     # a camera backing away from the wall x = 3 in four keyframes; 0 and 1 left the window (their depth maps
     # are archived while their states are), 2 and 3 are active; keyframe 9 was archived and then forgotten

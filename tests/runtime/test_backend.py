@@ -95,6 +95,11 @@ def test_backend_recovers_ground_truth_from_perturbed_values():
     assert ok.all() and np.median(np.linalg.norm(P - sc.pts[ids], axis=1)) < 2e-3
     drop, n_out = backend.remove_outliers()
     assert n_out == 0 and drop.size == 0
+    assert backend.init_kf_id == 0  # the window's first keyframe; a reset forgets it, a new window names its own
+    backend._clear_window()
+    assert backend.init_kf_id is None
+    backend.initialize(sc.kf(3))
+    assert backend.init_kf_id == 3 and backend.active == [3]
 
 
 def test_outliers_are_removed_and_marginalisation_keeps_the_estimate():

@@ -113,6 +113,9 @@ class DenseConfig:
             ``D(c) = D_gt + D_net(c) - D_net(0)`` (so the codes and the code Jacobian are the network's), with
             the uncertainty ``oracle_b`` everywhere; it tells what a perfect depth network would buy.
         oracle_b: Laplace scale ``B`` [m] of the ground-truth depth source.
+        consis_poses: Eq. 14 acts on the poses and the codes of a pair (the paper); False: on the codes only,
+            the poses held at the window's estimates when the factors are built (a diagnostic: does Eq. 14
+            move the trajectory through the poses or through the depth maps).
         geo_fixed_landmarks: Eq. 13 with the landmarks held at their current estimates (keys ``X(k), C(k)``,
             the "fixed sparse map points" variant); False: the landmarks are variables too.
         sigma_per_b: row sigma per unit of the predicted Laplace scale ``B``. The Laplace value is
@@ -157,6 +160,7 @@ class DenseConfig:
     depth_source: str = "network"
     oracle_b: float = 0.02
     geo_fixed_landmarks: bool = False
+    consis_poses: bool = True
     max_rel_uncertainty: float = 0.1
     voxel: float = 0.02
     max_depth: float = 10.0
@@ -514,7 +518,7 @@ class DenseMapper:
         s = sample_consistency_pixels(feat_uv2, self.net.width, self.net.height, self.cfg.n_consis, rng=rng, margin=2)
         try:
             return make_consistency_factor(
-                (X(k1), X(k2)),
+                (X(k1), X(k2)) if codes is None or self.cfg.consis_poses else None,
                 None if codes is None else (C(k1), C(k2)),
                 providers,
                 s.uv,

@@ -567,7 +567,7 @@ def consistency_sigmas(
 
 
 def make_consistency_factor(
-    pose_keys: tuple[int, int],
+    pose_keys: tuple[int, int] | None,
     code_keys: tuple[int, int] | None,
     providers: tuple[DepthProvider, DepthProvider],
     uv2: np.ndarray,
@@ -582,6 +582,8 @@ def make_consistency_factor(
     Args:
         pose_keys: keys of ``X(k1)``, ``X(k2)``; code_keys: keys of ``C(k1)``, ``C(k2)``, or None: the codes
             stay at ``init_codes`` (fixed depth maps) and the factor's keys are ``[X(k1), X(k2)]``.
+            ``pose_keys`` None (with code keys): the poses stay at ``init_poses`` and the keys are
+            ``[C(k1), C(k2)]`` (Eq. 14 on the depth maps only; a diagnostic, the paper's factor has both).
         providers: depth providers of k1 and k2 (same network size).
         uv2: (S, 2) sampled network pixels of k2 (:func:`runtime.sampling.sample_consistency_pixels`).
         K: ``(fx, fy, cx, cy)`` of the network camera (e.g. ``NetworkMapping.camera(cam.pinhole())``).
@@ -617,6 +619,10 @@ def make_consistency_factor(
     res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, **ekw)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
+    if pose_keys is None:
+        if code_keys is None:
+            raise ValueError("give pose_keys, code_keys or both")
+        return _fixed_pose_consistency_factor(code_keys, providers, (T1, T2), T_b_c, K, lookup2, rays2, sigmas, cfg)
     kx1, kx2 = (int(k) for k in pose_keys)
     if code_keys is None:
         return _fixed_depth_consistency_factor((kx1, kx2), depths0, T_b_c, K, lookup2, rays2, sigmas, cfg)
@@ -671,3 +677,32 @@ def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigm
         return res.r, (list(res.jacobians[:2]) if want_jacobians else None)
 
     return custom_factor(_noise(sigmas, cfg.consis_huber_k), [kx1, kx2], error_fn, [6, 6], check=cfg.check_shapes)
+
+
+def _fixed_pose_consistency_factor(keys, providers, poses, T_b_c, K, lookup2, rays2, sigmas, cfg: DepthFactorConfig):
+    """Eq. 14 with both poses fixed: keys ``[C(k1), C(k2)]`` (:func:`make_consistency_factor`)."""
+    kc1, kc2 = (int(k) for k in keys)
+    if kc1 == kc2:
+        raise ValueError(f"keys must be distinct, got {keys}")
+    p1, p2 = providers
+    T1, T2 = poses
+    ekw = {"min_depth": cfg.min_depth, "edge_rel": cfg.edge_rel}
+
+    def error_fn(values, want_jacobians: bool):
+        c1 = np.asarray(values.atVector(kc1), dtype=np.float64)
+        c2 = np.asarray(values.atVector(kc2), dtype=np.float64)
+        if not want_jacobians:
+            res = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **ekw)
+            return res.r, None
+        d1, J1 = p1.jacobian(c1)
+        d2, J2 = p2.jacobian(c2)
+        res = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **ekw)
+        return res.r, list(res.jacobians[2:])
+
+    return custom_factor(
+        _noise(sigmas, cfg.consis_huber_k),
+        [kc1, kc2],
+        error_fn,
+        [_code_dim(p1), _code_dim(p2)],
+        check=cfg.check_shapes,
+    )

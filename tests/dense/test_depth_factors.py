@@ -292,6 +292,30 @@ def test_fixed_depth_consistency_factor_is_the_pose_part_of_the_full_one():
         make_consistency_factor((X(0), X(0)), None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
 
 
+def test_fixed_pose_consistency_factor_is_the_code_part_of_the_full_one():
+    # pose_keys=None (dense_settings.consis_poses=false): the poses stay at the build poses, keys are the codes
+    Ts, provs, uv2, codes = pair_setup(1)
+    full = make_consistency_factor((X(0), X(1)), (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+    fixed = make_consistency_factor(None, (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+    assert list(fixed.keys()) == [C(0), C(1)]
+    codes2 = (codes[0] + 0.3, codes[1] - 0.2)  # away from the build codes, so that the residual is not ~0
+    v = pair_values(Ts, codes2)
+    vc = gtsam.Values()
+    for k in range(2):
+        vc.insert(C(k), v.atVector(C(k)))
+    r = fixed.unwhitenedError(vc)
+    np.testing.assert_allclose(r, full.unwhitenedError(v), atol=1e-12)
+    assert np.count_nonzero(np.abs(r) > 1e-3) > 10
+    num = assert_jacobians_match(fixed, vc)
+    assert all(np.abs(Jk).max() > 1e-3 for Jk in num)
+    for Jk, Jf in zip(analytic_jacobians(fixed, vc), analytic_jacobians(full, v)[2:], strict=True):
+        np.testing.assert_allclose(Jk, Jf, atol=1e-12)
+    with pytest.raises(ValueError, match="pose_keys, code_keys"):
+        make_consistency_factor(None, None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+    with pytest.raises(ValueError, match="distinct"):
+        make_consistency_factor(None, (C(0), C(0)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+
+
 def test_consistency_sigmas_propagate_both_maps():
     T1 = body_pose(t=(0.0, 0.0, 0.0))
     T2 = body_pose(t=(0.5, 0.3, 0.0))

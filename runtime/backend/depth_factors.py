@@ -631,17 +631,10 @@ def make_consistency_factor(
         raise ValueError(f"keys must be distinct, got {pose_keys}, {code_keys}")
 
     def error_fn(values, want_jacobians: bool):
-        T_w_b1 = values.atPose3(kx1).matrix()
-        T_w_b2 = values.atPose3(kx2).matrix()
-        c1 = np.asarray(values.atVector(kc1), dtype=np.float64)
-        c2 = np.asarray(values.atVector(kc2), dtype=np.float64)
-        if not want_jacobians:
-            res = consistency_residuals(T_w_b1, T_w_b2, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **ekw)
-            return res.r, None
-        d1, J1 = p1.jacobian(c1)
-        d2, J2 = p2.jacobian(c2)
-        res = consistency_residuals(T_w_b1, T_w_b2, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **ekw)
-        return res.r, list(res.jacobians)
+        poses = (values.atPose3(kx1).matrix(), values.atPose3(kx2).matrix())
+        codes = (values.atVector(kc1), values.atVector(kc2))
+        r, jac = _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians)
+        return r, (list(jac) if want_jacobians else None)
 
     C1, C2 = _code_dim(p1), _code_dim(p2)
     return custom_factor(
@@ -679,30 +672,36 @@ def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigm
     return custom_factor(_noise(sigmas, cfg.consis_huber_k), [kx1, kx2], error_fn, [6, 6], check=cfg.check_shapes)
 
 
+def _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians: bool):
+    """Eq. 14 residuals of two keyframes' decoded depth maps at ``codes`` and, with ``want_jacobians``, the
+    Jacobians ``(J_x1, J_x2, J_c1, J_c2)`` (else None)."""
+    p1, p2 = providers
+    c1, c2 = (np.asarray(c, dtype=np.float64) for c in codes)
+    if not want_jacobians:
+        res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **ekw)
+        return res.r, None
+    d1, J1 = p1.jacobian(c1)
+    d2, J2 = p2.jacobian(c2)
+    res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **ekw)
+    return res.r, res.jacobians
+
+
 def _fixed_pose_consistency_factor(keys, providers, poses, T_b_c, K, lookup2, rays2, sigmas, cfg: DepthFactorConfig):
     """Eq. 14 with both poses fixed: keys ``[C(k1), C(k2)]`` (:func:`make_consistency_factor`)."""
     kc1, kc2 = (int(k) for k in keys)
     if kc1 == kc2:
         raise ValueError(f"keys must be distinct, got {keys}")
-    p1, p2 = providers
-    T1, T2 = poses
     ekw = {"min_depth": cfg.min_depth, "edge_rel": cfg.edge_rel}
 
     def error_fn(values, want_jacobians: bool):
-        c1 = np.asarray(values.atVector(kc1), dtype=np.float64)
-        c2 = np.asarray(values.atVector(kc2), dtype=np.float64)
-        if not want_jacobians:
-            res = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **ekw)
-            return res.r, None
-        d1, J1 = p1.jacobian(c1)
-        d2, J2 = p2.jacobian(c2)
-        res = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **ekw)
-        return res.r, list(res.jacobians[2:])
+        codes = (values.atVector(kc1), values.atVector(kc2))
+        r, jac = _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians)
+        return r, (list(jac[2:]) if want_jacobians else None)
 
     return custom_factor(
         _noise(sigmas, cfg.consis_huber_k),
         [kc1, kc2],
         error_fn,
-        [_code_dim(p1), _code_dim(p2)],
+        [_code_dim(p) for p in providers],
         check=cfg.check_shapes,
     )

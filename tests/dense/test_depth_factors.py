@@ -269,51 +269,37 @@ def test_consistency_jacobians_every_key(seed):
         assert np.all(Jk[r == 0] == 0)  # silent rows have zero Jacobians
 
 
-def test_fixed_depth_consistency_factor_is_the_pose_part_of_the_full_one():
-    # code_keys=None (the coast bridge): the depth maps stay at the given codes, keys are the two poses only
-    Ts, provs, uv2, codes = pair_setup(0)
+@pytest.mark.parametrize("held", ["depths", "poses"])
+def test_consistency_factor_with_part_held_is_that_part_of_the_full_one(held):
+    # held="depths", code_keys=None (the coast bridge): the depth maps stay at the given codes, keys are the
+    # poses; held="poses", pose_keys=None (dense_settings.consis_poses=false): keys are the codes
+    Ts, provs, uv2, codes = pair_setup(0 if held == "depths" else 1)
     full = make_consistency_factor((X(0), X(1)), (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
-    fixed = make_consistency_factor((X(0), X(1)), None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
-    assert list(fixed.keys()) == [X(0), X(1)]
-    # away from the build poses, so that the residual is not ~0
-    Ts2 = (Ts[0], Ts[1] @ gtsam.Pose3.Expmap(np.array([0.01, -0.02, 0.01, 0.03, -0.02, 0.04])).matrix())
-    v = pair_values(Ts2, codes)
+    if held == "depths":
+        keys, part = [X(0), X(1)], slice(0, 2)
+        part_f = make_consistency_factor((X(0), X(1)), None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+        dT = gtsam.Pose3.Expmap(np.array([0.01, -0.02, 0.01, 0.03, -0.02, 0.04])).matrix()
+        v = pair_values((Ts[0], Ts[1] @ dT), codes)  # away from the build poses, so that the residual is not ~0
+    else:
+        keys, part = [C(0), C(1)], slice(2, 4)
+        part_f = make_consistency_factor(None, (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+        v = pair_values(Ts, (codes[0] + 0.3, codes[1] - 0.2))  # away from the build codes
+    assert list(part_f.keys()) == keys
     vp = gtsam.Values()
-    for k in range(2):
-        vp.insert(X(k), v.atPose3(X(k)))
-    r = fixed.unwhitenedError(vp)
+    for k in keys:
+        vp.insert(k, v.atPose3(k) if held == "depths" else v.atVector(k))
+    r = part_f.unwhitenedError(vp)
     np.testing.assert_allclose(r, full.unwhitenedError(v), atol=1e-12)
     assert np.count_nonzero(np.abs(r) > 1e-3) > 10
-    num = assert_jacobians_match(fixed, vp)
+    num = assert_jacobians_match(part_f, vp)
     assert all(np.abs(Jk).max() > 1e-3 for Jk in num)
-    for Jk, Jf in zip(analytic_jacobians(fixed, vp), analytic_jacobians(full, v)[:2], strict=True):
+    for Jk, Jf in zip(analytic_jacobians(part_f, vp), analytic_jacobians(full, v)[part], strict=True):
         np.testing.assert_allclose(Jk, Jf, atol=1e-12)
+    same = ((X(0), X(0)), None) if held == "depths" else (None, (C(0), C(0)))
     with pytest.raises(ValueError, match="distinct"):
-        make_consistency_factor((X(0), X(0)), None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
-
-
-def test_fixed_pose_consistency_factor_is_the_code_part_of_the_full_one():
-    # pose_keys=None (dense_settings.consis_poses=false): the poses stay at the build poses, keys are the codes
-    Ts, provs, uv2, codes = pair_setup(1)
-    full = make_consistency_factor((X(0), X(1)), (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
-    fixed = make_consistency_factor(None, (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
-    assert list(fixed.keys()) == [C(0), C(1)]
-    codes2 = (codes[0] + 0.3, codes[1] - 0.2)  # away from the build codes, so that the residual is not ~0
-    v = pair_values(Ts, codes2)
-    vc = gtsam.Values()
-    for k in range(2):
-        vc.insert(C(k), v.atVector(C(k)))
-    r = fixed.unwhitenedError(vc)
-    np.testing.assert_allclose(r, full.unwhitenedError(v), atol=1e-12)
-    assert np.count_nonzero(np.abs(r) > 1e-3) > 10
-    num = assert_jacobians_match(fixed, vc)
-    assert all(np.abs(Jk).max() > 1e-3 for Jk in num)
-    for Jk, Jf in zip(analytic_jacobians(fixed, vc), analytic_jacobians(full, v)[2:], strict=True):
-        np.testing.assert_allclose(Jk, Jf, atol=1e-12)
+        make_consistency_factor(*same, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
     with pytest.raises(ValueError, match="pose_keys, code_keys"):
         make_consistency_factor(None, None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
-    with pytest.raises(ValueError, match="distinct"):
-        make_consistency_factor(None, (C(0), C(0)), provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
 
 
 def test_consistency_sigmas_propagate_both_maps():

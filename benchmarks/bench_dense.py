@@ -12,7 +12,9 @@ Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one proces
 and for the dense runs the depth metrics of Table 2 on the keyframes that held a code, against the rendered
 ground truth (``mav0/depth0``) at network resolution: (a) the sparse map points, (b) the network prior at
 c = 0, (c) the optimised code. The machine is shared and noisy: compare FPS as ratios within one invocation.
-Prints one table (mean over seeds per preset and mode, plus per-run rows) and writes ``bench_dense.json``.
+Prints one table (mean over seeds per preset and mode, plus per-run rows) and writes ``bench_dense.json``,
+after every run too (``"complete": false`` until the end): an interrupted invocation keeps its finished runs, and
+the same command with ``--resume`` runs only the missing ones.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_slam import make_config, parse_value  # noqa: E402
-from benchmarks.common import cpu_model  # noqa: E402
+from benchmarks.common import cpu_model, write_json  # noqa: E402
 from runtime.dense import DenseConfig  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
 from runtime.slam import run_sequence  # noqa: E402
@@ -185,6 +187,23 @@ def bars(rows: list[dict]) -> dict:
     return out
 
 
+def resumable_rows(path: Path, args: dict, machine: dict) -> dict[tuple[str, int, str], dict]:
+    """Rows of an earlier invocation's ``bench_dense.json`` by ``(preset, seed, mode)``; {} when there is none.
+
+    Raises:
+        ValueError: it was written with other arguments or on another CPU (runs are chaotic across CPUs).
+    """
+    if not path.exists():
+        return {}
+    old = json.loads(path.read_text())
+    if old.get("args") != json.loads(json.dumps(args)):
+        raise ValueError(f"{path} was written with other arguments ({old.get('args')}): another --out, or no --resume")
+    cpu = old.get("machine", {}).get("cpu")
+    if cpu != machine["cpu"]:
+        raise ValueError(f"{path} was written on another CPU ({cpu}): runs differ between CPUs")
+    return {(r["preset"], int(r["seed"]), r["mode"]): r for r in old.get("rows", [])}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--presets", nargs="+", default=["textured", "whitewall"])
@@ -208,7 +227,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_dense"))
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the runs of an earlier invocation with the same arguments (its bench_dense.json in --out) and "
+        "run only the missing ones",
+    )
     args = ap.parse_args(argv)
+    run_args = {k: v for k, v in vars(args).items() if k != "resume"}
     make_config("default", args.slam_set)  # a bad override fails here, before any rendering
     logging.basicConfig(level=logging.ERROR)
     out = Path(args.out)
@@ -220,11 +246,24 @@ def main(argv: list[str] | None = None) -> int:
         "python": platform.python_version(),
         "data": "synthetic (sim/)",
     }
+    done = resumable_rows(out / "bench_dense.json", run_args, machine) if args.resume else {}
     rows = []
+    res = {
+        "machine": machine,
+        "args": run_args,
+        "columns": ("ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code"),
+        "complete": False,
+        "rows": rows,
+    }
     for preset in args.presets:
         for seed in args.seeds:
-            root = sequence(Path(args.data), preset, args.duration, seed, args.scale)
+            root = None
             for mode in args.modes:
+                if (preset, seed, mode) in done:
+                    rows.append(done[preset, seed, mode])
+                    print(f"bench_dense: {preset} seed {seed} {mode}: kept from the earlier invocation", flush=True)
+                    continue
+                root = root or sequence(Path(args.data), preset, args.duration, seed, args.scale)
                 t0 = time.perf_counter()
                 m = run_sequence(
                     read_euroc(root),
@@ -242,21 +281,15 @@ def main(argv: list[str] | None = None) -> int:
                     f"({time.perf_counter() - t0:.0f} s)",
                     flush=True,
                 )
+                write_json(out / "bench_dense.json", res)  # an interruption loses only the run in progress
     table = fmt_table(rows)
     b = bars(rows)
     print(table)
     print("bars:")
     for k, v in b.items():
         print(f"  {k}: {v}")
-    res = {
-        "machine": machine,
-        "args": vars(args),
-        "columns": ("ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code"),
-        "rows": rows,
-        "bars": b,
-        "table": table,
-    }
-    (out / "bench_dense.json").write_text(json.dumps(res, indent=2, default=float))
+    res.update(complete=True, bars=b, table=table)
+    write_json(out / "bench_dense.json", res)
     print(f"bench_dense: wrote {out / 'bench_dense.json'}")
     return 0
 

@@ -116,7 +116,8 @@ def describe_machine(m: dict) -> str:
 
 
 def write_json(path: str | Path, obj: dict) -> Path:
-    """Write ``obj`` as indented JSON (numpy scalars and arrays converted), creating the folder."""
+    """Write ``obj`` as indented JSON (numpy scalars and arrays converted), creating the folder; atomically (a
+    temporary file renamed over ``path``), so that an interruption leaves the old file or the new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
 
@@ -129,7 +130,9 @@ def write_json(path: str | Path, obj: dict) -> Path:
             return str(o)
         raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
-    path.write_text(json.dumps(obj, indent=2, default=default) + "\n")
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=default) + "\n")
+    os.replace(tmp, path)
     return path
 
 

@@ -43,3 +43,34 @@ def test_dense_overrides_leave_the_mode_its_residuals_and_parse_numbers():
     assert bench_dense._dense_cfg("sparse", ["edge_rel=0.05"]) is None
     net = bench_dense._dense_cfg("dense_eq13", ["depth_source=ground_truth", "start_after_s=5"])
     assert net.depth_source == "network" and not net.use_consistency and net.start_after_s == 5.0
+
+
+def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missing_ones(tmp_path, monkeypatch):
+    argv = _argv(tmp_path, "--seeds", "0", "1")
+    real, calls = bench_dense.run_sequence, []
+
+    def interrupted(seq, out, *a, **kw):  # the second run is stopped by the user
+        calls.append(out.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(seq, out, *a, **kw)
+
+    monkeypatch.setattr(bench_dense, "run_sequence", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        bench_dense.main(argv)
+    path = tmp_path / "out" / "bench_dense.json"
+    part = json.loads(path.read_text())
+    assert part["complete"] is False and [(r["seed"], r["mode"]) for r in part["rows"]] == [(0, "sparse")]
+    with pytest.raises(ValueError, match="other arguments"):  # a resume must not mix settings
+        bench_dense.main([*argv, "--resume", "--slam-set", "backend.window_size=6"])
+    calls.clear()
+    assert bench_dense.main([*argv, "--resume"]) == 0
+    assert calls == ["textured_s1_sparse"]  # seed 0 was kept, only seed 1 ran
+    res = json.loads(path.read_text())
+    assert res["complete"] is True and [r["seed"] for r in res["rows"]] == [0, 1]
+    assert res["rows"][0] == part["rows"][0] and "resume" not in res["args"]
+    assert not path.with_name(path.name + ".tmp").exists()
+    part["machine"]["cpu"] = "another CPU"
+    path.write_text(json.dumps(part))
+    with pytest.raises(ValueError, match="another CPU"):
+        bench_dense.main([*argv, "--resume"])

@@ -116,6 +116,9 @@ class DenseConfig:
         consis_poses: Eq. 14 acts on the poses and the codes of a pair (the paper); False: on the codes only,
             the poses held at the window's estimates when the factors are built (a diagnostic: does Eq. 14
             move the trajectory through the poses or through the depth maps).
+        consis_offset: an Eq. 14 pair's common depth offset is a nuisance, eliminated from its rows
+            (:class:`runtime.backend.depth_factors.DepthFactorConfig`): the pair constrains the shape its two
+            maps agree on, not their absolute depth.
         geo_fixed_landmarks: Eq. 13 with the landmarks held at their current estimates (keys ``X(k), C(k)``,
             the "fixed sparse map points" variant); False: the landmarks are variables too.
         sigma_per_b: row sigma per unit of the predicted Laplace scale ``B``. The Laplace value is
@@ -161,6 +164,7 @@ class DenseConfig:
     oracle_b: float = 0.02
     geo_fixed_landmarks: bool = False
     consis_poses: bool = True
+    consis_offset: bool = False
     max_rel_uncertainty: float = 0.1
     voxel: float = 0.02
     max_depth: float = 10.0
@@ -203,6 +207,7 @@ class DenseConfig:
             geo_eff_rows=self.geo_eff_rows,
             consis_eff_rows=self.consis_eff_rows,
             edge_rel=self.edge_rel,
+            consis_offset=self.consis_offset,
         )
 
 

@@ -128,6 +128,10 @@ class DepthFactorConfig:
             information of ``eff_rows`` independent ones.
         min_depth: smallest depth [m] in ``k1`` for a consistency sample to count.
         edge_rel: depth-edge test of both residuals (module doc, :func:`depth_edge_ratio`); None: off.
+        consis_offset: an Eq. 14 pair's rows carry a common depth offset as a nuisance (eliminated: its
+            weighted mean over the valid rows is taken out of the residuals and their Jacobians), so that the
+            pair constrains the shape its two depth maps agree on, not their absolute depth (a per-map bias of
+            the network). Codes' Eq. 14 factors only (not the fixed-depth ones of the coast bridge).
         check_shapes: assert every Jacobian's shape at each linearisation (cheap; GTSAM accepts wrong shapes).
     """
 
@@ -142,6 +146,7 @@ class DepthFactorConfig:
     geo_eff_rows: float | None = None
     consis_eff_rows: float | None = None
     edge_rel: float | None = None
+    consis_offset: bool = False
 
     def __post_init__(self) -> None:
         if self.edge_rel is not None and not self.edge_rel > 0:
@@ -619,10 +624,13 @@ def make_consistency_factor(
     res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, **ekw)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
+    # the coded factors' evaluation; with consis_offset the weights of the nuisance offset (fixed at build)
+    ckw = {**ekw, "offset_w": sigmas**-2.0 if cfg.consis_offset else None}
     if pose_keys is None:
         if code_keys is None:
             raise ValueError("give pose_keys, code_keys or both")
-        return _fixed_pose_consistency_factor(code_keys, providers, (T1, T2), T_b_c, K, lookup2, rays2, sigmas, cfg)
+        geometry = (T_b_c, K, lookup2, rays2)
+        return _fixed_pose_consistency_factor(code_keys, providers, (T1, T2), *geometry, sigmas, ckw, cfg)
     kx1, kx2 = (int(k) for k in pose_keys)
     if code_keys is None:
         return _fixed_depth_consistency_factor((kx1, kx2), depths0, T_b_c, K, lookup2, rays2, sigmas, cfg)
@@ -633,7 +641,7 @@ def make_consistency_factor(
     def error_fn(values, want_jacobians: bool):
         poses = (values.atPose3(kx1).matrix(), values.atPose3(kx2).matrix())
         codes = (values.atVector(kc1), values.atVector(kc2))
-        r, jac = _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians)
+        r, jac = _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ckw, want_jacobians)
         return r, (list(jac) if want_jacobians else None)
 
     C1, C2 = _code_dim(p1), _code_dim(p2)
@@ -644,6 +652,22 @@ def make_consistency_factor(
         [6, 6, C1, C2],
         check=cfg.check_shapes,
     )
+
+
+def remove_weighted_offset(r: np.ndarray, jacobians, valid: np.ndarray, w: np.ndarray):
+    """Eliminate a common offset ``b`` of the valid rows: ``r - b*`` with ``b* = sum(w r) / sum(w)`` over them
+    (the least-squares offset at weights ``w``), and the Jacobians likewise (``b*`` is linear in ``r``); rows
+    not valid stay 0. Returns ``(r, jacobians)`` (jacobians None stays None)."""
+    wv = np.where(valid, w, 0.0)
+    sw = wv.sum()
+    if sw <= 0:
+        return r, jacobians
+    r = np.where(valid, r - (wv @ r) / sw, 0.0)
+    if jacobians is not None:
+        jacobians = tuple(
+            None if J is None else np.where(valid[:, None], J - (wv @ J) / sw, 0.0) for J in jacobians
+        )
+    return r, jacobians
 
 
 def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigmas, cfg: DepthFactorConfig):
@@ -674,24 +698,27 @@ def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigm
 
 def _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians: bool):
     """Eq. 14 residuals of two keyframes' decoded depth maps at ``codes`` and, with ``want_jacobians``, the
-    Jacobians ``(J_x1, J_x2, J_c1, J_c2)`` (else None)."""
+    Jacobians ``(J_x1, J_x2, J_c1, J_c2)`` (else None); ``ekw``: ``min_depth``, ``edge_rel`` and, with
+    ``consis_offset``, ``offset_w`` (:func:`remove_weighted_offset`)."""
     p1, p2 = providers
     c1, c2 = (np.asarray(c, dtype=np.float64) for c in codes)
+    kw = {k: v for k, v in ekw.items() if k != "offset_w"}
     if not want_jacobians:
-        res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **ekw)
-        return res.r, None
-    d1, J1 = p1.jacobian(c1)
-    d2, J2 = p2.jacobian(c2)
-    res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **ekw)
+        res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **kw)
+    else:
+        d1, J1 = p1.jacobian(c1)
+        d2, J2 = p2.jacobian(c2)
+        res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **kw)
+    if ekw.get("offset_w") is not None:
+        return remove_weighted_offset(res.r, res.jacobians, res.valid, ekw["offset_w"])
     return res.r, res.jacobians
 
 
-def _fixed_pose_consistency_factor(keys, providers, poses, T_b_c, K, lookup2, rays2, sigmas, cfg: DepthFactorConfig):
+def _fixed_pose_consistency_factor(keys, providers, poses, T_b_c, K, lookup2, rays2, sigmas, ekw, cfg):
     """Eq. 14 with both poses fixed: keys ``[C(k1), C(k2)]`` (:func:`make_consistency_factor`)."""
     kc1, kc2 = (int(k) for k in keys)
     if kc1 == kc2:
         raise ValueError(f"keys must be distinct, got {keys}")
-    ekw = {"min_depth": cfg.min_depth, "edge_rel": cfg.edge_rel}
 
     def error_fn(values, want_jacobians: bool):
         codes = (values.atVector(kc1), values.atVector(kc2))

@@ -17,6 +17,7 @@ from runtime.backend.depth_factors import (
     inside_image,
     make_consistency_factor,
     make_geometric_depth_factors,
+    remove_weighted_offset,
 )
 from runtime.backend.factors import analytic_jacobians, custom_factor, numerical_jacobians
 from runtime.geometry import inv_T, to_pose3
@@ -300,6 +301,50 @@ def test_consistency_factor_with_part_held_is_that_part_of_the_full_one(held):
         make_consistency_factor(*same, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
     with pytest.raises(ValueError, match="pose_keys, code_keys"):
         make_consistency_factor(None, None, provs, uv2, K, T_B_C, Ts, codes, cfg=NO_ROBUST)
+
+
+def test_remove_weighted_offset_known_answer():
+    r, valid, w = np.array([1.0, 2.0, 0.0, 4.0]), np.array([True, True, False, True]), np.array([1.0, 1.0, 9.0, 2.0])
+    J = np.array([[1.0, 0.0], [3.0, 1.0], [0.0, 0.0], [2.0, 5.0]])
+    r2, (J2, none) = remove_weighted_offset(r, (J, None), valid, w)  # offset (1 + 2 + 2 * 4) / 4 = 2.75
+    np.testing.assert_allclose(r2, [-1.75, -0.75, 0.0, 1.25])
+    np.testing.assert_allclose(J2, [[-1.0, -2.75], [1.0, -1.75], [0.0, 0.0], [0.0, 2.25]])
+    assert none is None
+    r3, jac = remove_weighted_offset(r, None, np.zeros(4, bool), w)  # nothing valid: unchanged
+    assert r3 is r and jac is None
+
+
+@pytest.mark.parametrize("pose_keys", [(X(0), X(1)), None])
+def test_consistency_offset_is_eliminated_and_its_jacobians_match(pose_keys):
+    # consis_offset: the pair's rows lose their weighted mean, so a constant added to one depth map changes
+    # nothing, while without it every valid row moves by that constant
+    Ts, provs, uv2, codes = pair_setup(2, provider_cls=LinearDepth)
+    uv2 = 0.5 * uv2 + [W / 4, H / 4]  # central samples: none leaves k1's image under the numerical steps
+    shifted = (LinearDepth(provs[0].D0 + 0.3, provs[0].bases, provs[0].uncertainty), provs[1])
+    OFF = DepthFactorConfig(geo_huber_k=None, consis_huber_k=None, consis_offset=True)
+    codes2 = (codes[0] + 0.2, codes[1] - 0.1)  # away from the build codes
+    v = pair_values(Ts, codes2)
+    if pose_keys is None:  # the codes-only factor gets the same treatment
+        v = gtsam.Values()
+        for k in range(2):
+            v.insert(C(k), np.asarray(codes2[k], np.float64))
+
+    def make(p, cfg):
+        return make_consistency_factor(pose_keys, (C(0), C(1)), p, uv2, K, T_B_C, Ts, codes, cfg=cfg)
+
+    plain, plain_shifted = make(provs, NO_ROBUST).unwhitenedError(v), make(shifted, NO_ROBUST).unwhitenedError(v)
+    valid = plain != 0
+    assert valid.all()
+    np.testing.assert_allclose((plain_shifted - plain)[valid], 0.3, atol=1e-9)
+    f = make(provs, OFF)
+    r = f.unwhitenedError(v)
+    np.testing.assert_allclose(r, make(shifted, OFF).unwhitenedError(v), atol=1e-9)
+    assert np.abs(r).max() > 1e-3
+    w = 1.0 / np.diag(f.noiseModel().covariance())  # the build weights: the weighted mean is gone
+    assert abs(np.sum(w[valid] * r[valid])) < 1e-9 * np.sum(w[valid])
+    assert abs(np.sum(w[valid] * plain[valid])) > 1e-3 * np.sum(w[valid])
+    num = assert_jacobians_match(f, v)
+    assert all(np.abs(Jk).max() > 1e-3 for Jk in num)
 
 
 def test_consistency_sigmas_propagate_both_maps():

@@ -95,10 +95,10 @@ class DenseConfig:
             pair's Eq. 14 rows (:class:`runtime.backend.depth_factors.DepthFactorConfig`; None: independent).
         start_after_s: seconds after the first keyframe (the initialisation) before codes and depth factors
             join the window's optimisations (0: from the first one); a re-initialisation after a reset
-            waits again. While the visual-inertial scale and
-            gravity are still converging, a biased depth network pulls them, and that early error stays in the
-            trajectory (marginalised keyframes are not revisited); the network's sparse-depth input, the map
-            points at their current scale, is least reliable then too. Chosen on seeds 0-4 of the 60 s
+            waits again. While the visual-inertial scale and gravity are still converging, a biased depth
+            network pulls them, and that early error stays in the trajectory (marginalised keyframes are not
+            revisited); the network's sparse-depth input, the map points at their current scale, is least
+            reliable then too. Chosen on seeds 0-4 of the 60 s
             sequences (AMD EPYC, with ``edge_rel=0.05``), mean ATE textured / whitewall: 0 s 4.94 / 8.94 mm,
             5 s 4.08 / 7.32 mm, 10 s 4.32 / 7.64 mm (sparse 4.29 / 7.38 mm); with 0 s the largest excess over
             sparse was in the first 5 s of the trajectory (seed 4 textured: 14.9 against 7.2 mm there).

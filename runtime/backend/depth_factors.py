@@ -624,13 +624,13 @@ def make_consistency_factor(
     res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, **ekw)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     sigmas = sigmas * correlation_inflation(int(res0.valid.sum()), cfg.consis_eff_rows)
-    # the coded factors' evaluation; with consis_offset the weights of the nuisance offset (fixed at build)
-    ckw = {**ekw, "offset_w": sigmas**-2.0 if cfg.consis_offset else None}
+    # with consis_offset, the weights of the coded factors' nuisance offset (fixed at build)
+    offset_w = sigmas**-2.0 if cfg.consis_offset else None
+    geometry = (T_b_c, K, lookup2, rays2)
     if pose_keys is None:
         if code_keys is None:
             raise ValueError("give pose_keys, code_keys or both")
-        geometry = (T_b_c, K, lookup2, rays2)
-        return _fixed_pose_consistency_factor(code_keys, providers, (T1, T2), *geometry, sigmas, ckw, cfg)
+        return _fixed_pose_consistency_factor(code_keys, providers, (T1, T2), geometry, sigmas, ekw, offset_w, cfg)
     kx1, kx2 = (int(k) for k in pose_keys)
     if code_keys is None:
         return _fixed_depth_consistency_factor((kx1, kx2), depths0, T_b_c, K, lookup2, rays2, sigmas, cfg)
@@ -641,7 +641,7 @@ def make_consistency_factor(
     def error_fn(values, want_jacobians: bool):
         poses = (values.atPose3(kx1).matrix(), values.atPose3(kx2).matrix())
         codes = (values.atVector(kc1), values.atVector(kc2))
-        r, jac = _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ckw, want_jacobians)
+        r, jac = _coded_consistency(poses, codes, providers, geometry, ekw, offset_w, want_jacobians)
         return r, (list(jac) if want_jacobians else None)
 
     C1, C2 = _code_dim(p1), _code_dim(p2)
@@ -696,25 +696,24 @@ def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigm
     return custom_factor(_noise(sigmas, cfg.consis_huber_k), [kx1, kx2], error_fn, [6, 6], check=cfg.check_shapes)
 
 
-def _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians: bool):
+def _coded_consistency(poses, codes, providers, geometry, ekw, offset_w, want_jacobians: bool):
     """Eq. 14 residuals of two keyframes' decoded depth maps at ``codes`` and, with ``want_jacobians``, the
-    Jacobians ``(J_x1, J_x2, J_c1, J_c2)`` (else None); ``ekw``: ``min_depth``, ``edge_rel`` and, with
-    ``consis_offset``, ``offset_w`` (:func:`remove_weighted_offset`)."""
+    Jacobians ``(J_x1, J_x2, J_c1, J_c2)`` (else None). ``geometry``: ``(T_b_c, K, lookup2, rays2)``; ``ekw``:
+    ``min_depth``, ``edge_rel``; ``offset_w``: None, or the weights of :func:`remove_weighted_offset`."""
     p1, p2 = providers
     c1, c2 = (np.asarray(c, dtype=np.float64) for c in codes)
-    kw = {k: v for k, v in ekw.items() if k != "offset_w"}
     if not want_jacobians:
-        res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, p1.depth(c1), p2.depth(c2), **kw)
+        res = consistency_residuals(*poses, *geometry, p1.depth(c1), p2.depth(c2), **ekw)
     else:
         d1, J1 = p1.jacobian(c1)
         d2, J2 = p2.jacobian(c2)
-        res = consistency_residuals(*poses, T_b_c, K, lookup2, rays2, d1, d2, J1, J2, **kw)
-    if ekw.get("offset_w") is not None:
-        return remove_weighted_offset(res.r, res.jacobians, res.valid, ekw["offset_w"])
+        res = consistency_residuals(*poses, *geometry, d1, d2, J1, J2, **ekw)
+    if offset_w is not None:
+        return remove_weighted_offset(res.r, res.jacobians, res.valid, offset_w)
     return res.r, res.jacobians
 
 
-def _fixed_pose_consistency_factor(keys, providers, poses, T_b_c, K, lookup2, rays2, sigmas, ekw, cfg):
+def _fixed_pose_consistency_factor(keys, providers, poses, geometry, sigmas, ekw, offset_w, cfg):
     """Eq. 14 with both poses fixed: keys ``[C(k1), C(k2)]`` (:func:`make_consistency_factor`)."""
     kc1, kc2 = (int(k) for k in keys)
     if kc1 == kc2:
@@ -722,7 +721,7 @@ def _fixed_pose_consistency_factor(keys, providers, poses, T_b_c, K, lookup2, ra
 
     def error_fn(values, want_jacobians: bool):
         codes = (values.atVector(kc1), values.atVector(kc2))
-        r, jac = _coded_consistency(poses, codes, providers, T_b_c, K, lookup2, rays2, ekw, want_jacobians)
+        r, jac = _coded_consistency(poses, codes, providers, geometry, ekw, offset_w, want_jacobians)
         return r, (list(jac[2:]) if want_jacobians else None)
 
     return custom_factor(

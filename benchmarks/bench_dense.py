@@ -7,6 +7,7 @@ upper bound of what a better network could buy: ``dense_gt_eq13_14``).
     python benchmarks/bench_dense.py --duration 30 --seeds 0      # smaller (whitewall needs >= 24 s)
     python benchmarks/bench_dense.py --scale 0.5 --set n_consis=200   # half-resolution images
     python benchmarks/bench_dense.py --presets whitewall --slam-set backend.smooth_coast=false   # a runtime key
+    python benchmarks/bench_dense.py --modes dense_eq13_14 --model outputs/export/my_model   # another network
 
 Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one process, runs one after another),
 and for the dense runs the depth metrics of Table 2 on the keyframes that held a code, against the rendered
@@ -102,6 +103,25 @@ def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
     d.update({k: base[k] for k in MODE_KEYS})  # the mode decides the residuals and the depth source
     d.setdefault("save_maps", False)
     return DenseConfig.from_dict(d)
+
+
+def model_identity(model_dir: str | None) -> dict:
+    """The network the dense modes use: its folder and the SHA-256 of its ONNX files (checked readable here).
+
+    Raises:
+        runtime.network.ModelError: the folder lacks the exported files or its manifest does not match them.
+    """
+    import hashlib
+
+    from runtime.network import DepthNetwork, default_model_dir
+
+    d = Path(model_dir) if model_dir is not None else default_model_dir()
+    DepthNetwork(d)  # the same checks as the SLAM run (files, manifest, input/output shapes)
+    return {
+        "dir": str(d),
+        "shipped": model_dir is None,
+        "sha256": {f: hashlib.sha256((d / f).read_bytes()).hexdigest() for f in ("prior.onnx", "decoder.onnx")},
+    }
 
 
 def _row(preset: str, seed: int, mode: str, m: dict) -> dict:
@@ -225,6 +245,12 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="SlamConfig overrides key=value (conf/runtime keys, e.g. backend.smooth_coast=false)",
     )
+    ap.add_argument(
+        "--model",
+        default=None,
+        help="exported network folder (prior.onnx, decoder.onnx, manifest.json) for the dense modes; default: the "
+        "shipped model",
+    )
     ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_dense"))
     ap.add_argument(
@@ -236,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     run_args = {k: v for k, v in vars(args).items() if k != "resume"}
     make_config("default", args.slam_set)  # a bad override fails here, before any rendering
+    model = model_identity(args.model)  # so does a missing or malformed model folder
     logging.basicConfig(level=logging.ERROR)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -251,6 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     res = {
         "machine": machine,
         "args": run_args,
+        "model": model,
         "columns": ("ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code"),
         "complete": False,
         "rows": rows,
@@ -272,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
                     progress=False,
                     plot=False,
                     dense=_dense_cfg(mode, args.set),
+                    model_dir=args.model,
                 )
                 rows.append(_row(preset, seed, mode, m))
                 r = rows[-1]

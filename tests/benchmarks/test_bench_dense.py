@@ -74,3 +74,35 @@ def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missi
     path.write_text(json.dumps(part))
     with pytest.raises(ValueError, match="another CPU"):
         bench_dense.main([*argv, "--resume"])
+
+
+def test_a_missing_model_is_refused_before_anything_is_rendered(tmp_path):
+    from runtime.network import ModelError
+
+    with pytest.raises(ModelError):
+        bench_dense.main(_argv(tmp_path, "--model", str(tmp_path / "no_model")))
+    assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()
+
+
+def test_model_reaches_the_runs_and_the_json_names_it(tmp_path, monkeypatch):
+    import hashlib
+    import shutil
+
+    from runtime.network import default_model_dir
+
+    model = tmp_path / "model"
+    shutil.copytree(default_model_dir(), model)
+    real, seen = bench_dense.run_sequence, []
+
+    def recording(seq, out, *a, **kw):
+        seen.append(kw["model_dir"])
+        return real(seq, out, *a, **kw)
+
+    monkeypatch.setattr(bench_dense, "run_sequence", recording)
+    assert bench_dense.main(_argv(tmp_path, "--model", str(model))) == 0
+    assert seen == [str(model)]
+    res = json.loads((tmp_path / "out" / "bench_dense.json").read_text())
+    assert res["model"]["dir"] == str(model) and res["model"]["shipped"] is False
+    assert res["model"]["sha256"]["decoder.onnx"] == hashlib.sha256((model / "decoder.onnx").read_bytes()).hexdigest()
+    shipped = bench_dense.model_identity(None)
+    assert shipped["shipped"] is True and shipped["sha256"] == res["model"]["sha256"]  # a copy: the same files

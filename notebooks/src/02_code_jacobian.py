@@ -27,8 +27,8 @@
 # from N(0, 0.5² I)), δ from 1e-5 to 1 with 2 points per decade, per-dimension sweep with the others at
 # 1e-2; timings with 2 threads, 12 ORT / 3 torch runs per method, the 24-configuration session sweep; CPU
 # only (2 cores shared with other jobs: compare the ratios, not the absolute times). The committed run used
-# the shipped default model (128x128) with its checkpoint and took about 1 minute (2026-11-21, AMD EPYC, 2
-# cores shared with other jobs).
+# the shipped default model (128x128; the second one, 2026-11-25) with its checkpoint and took 79 s (2026-11-25,
+# AMD EPYC, 2 cores shared with other jobs).
 #
 # **What the committed run shows.** The error curve is the expected V: round-off dominates below δ ≈ 1e-3,
 # truncation above; the minimum is at δ ≈ 3e-3 (about 1 % of mean |J|), and δ = 1e-2 costs about 2x that

@@ -18,37 +18,36 @@
 #
 # **Budget of the committed run.** The issue's setting: 60 s sequences (1200 frames at 752x480, IMU noise), seeds 0,
 # 1, 2 of both presets, all four modes (24 runs, one after another; the fourth is the upper bound below), the shipped
-# depth model (`runtime/assets/default_model`, 128x128), the package's default `DenseConfig` (printed below:
-# `sigma_per_b` = 8√2, the depth-edge test `edge_rel` = 0.05, codes and depth factors from `start_after_s` = 5 s after
-# the first keyframe) and default `SlamConfig` (with `backend.smooth_coast`). The sequences were already cached in
-# `DATA`. The committed run took 11 min (679 s in the notebook; 2026-11-25, AMD EPYC, 2 cores shared with other
-# jobs, `nice -n 5`). Runs on one machine are deterministic: `python benchmarks/bench_dense.py` on the same day and
-# machine gave the same 24 ATEs (`benchmarks/results/bench_dense_60s_8seeds_*.json`, seeds 0-2 of 0-7).
+# depth model (`runtime/assets/default_model`, 128x128; the second one, 2026-11-25), the package's default
+# `DenseConfig` (printed below: `sigma_per_b` = 8√2, the depth-edge test `edge_rel` = 0.05, codes and depth factors
+# from `start_after_s` = 5 s after the first keyframe) and default `SlamConfig` (with `backend.smooth_coast`). The
+# sequences were already cached in `DATA`. The committed run took 12 min (695 s in the notebook; 2026-11-25, AMD
+# EPYC, 2 cores shared with other jobs, `nice -n 5`). Runs on one machine are deterministic: the same seeds' runs
+# of `python benchmarks/bench_dense.py` on the same day and machine gave the same ATEs
+# (`benchmarks/results/bench_dense_60s_16seeds_model2_*.json`, seeds 0-2 of 0-15).
 #
 # **The upper bound** (`dense_gt_eq13_14`): the same dense system with the rendered depth in place of the network's
 # prior (`DenseConfig.depth_source = "ground_truth"`: `D(c) = D_gt + D_net(c) − D_net(0)`, `B` = 2 cm, Laplace sigma
 # `√2 B`). It tells what a perfect depth network would buy on these sequences.
 #
-# **What the committed run shows.** On `textured` dense Eq. 13 + 14 is at 3.8 ± 1.5 mm against 4.3 ± 1.6 mm sparse
-# (Eq. 13 alone 3.9 mm; per seed 2.0 / 5.6 / 3.9 against 2.0 / 5.7 / 5.1 mm), so on these three seeds the issue's bar
-# (dense at most sparse) is met. These seeds are among those the two newest defaults were chosen on (seeds 0-4:
-# the depth-edge test and the 5 s wait after initialisation, `runtime/dense.py` `DenseConfig`), and over eight
-# seeds it is not met: 4.22 against 4.05 mm, with the held-out seeds 5-7 at 4.45 against 3.65 mm
-# (`benchmarks/results/bench_dense_60s_8seeds_textured.json`). Over the eight seeds Eq. 13 alone is at 3.72 mm and
-# the rendered depth with Eq. 13 + 14 at 3.45 mm (3.4 mm here): the factors work, and with the network's depth
-# (RMSE about 0.2 m, errors correlated over a map) Eq. 14 between two maps is what costs. Before the edge test and
-# the wait, dense was worse than sparse on every variant, even with the rendered depth (`docs/PITFALLS.md`).
+# **What the committed run shows.** On `textured` dense Eq. 13 + 14 is at 4.0 ± 1.5 mm against 4.3 ± 1.6 mm sparse
+# (per seed 2.0 / 5.4 / 4.6 against 2.0 / 5.7 / 5.1 mm; Eq. 13 alone 4.6 mm), so on these three seeds the issue's
+# bar (dense at most sparse) is met. Three seeds do not resolve it: over seeds 0-15 Eq. 13 + 14 is at 4.18 against
+# 4.25 mm sparse, a paired difference of -0.07 ± 0.14 mm (better on 9 of 16), and Eq. 13 alone at 4.27 mm
+# (`benchmarks/results/bench_dense_60s_16seeds_model2_textured_*.json`). The rendered depth with Eq. 13 + 14 is at
+# 3.7 mm here (3.45 mm over seeds 0-7 with the first model): the factors work, and the network's depth (RMSE about
+# 0.15 m, errors correlated over a map) is what limits them.
 # On `whitewall` every run loses visual tracking in front of the bare wall for about 10 s, coasts on the IMU and is
-# relocalised against the map. Dense is at 6.4 mm (Eq. 13) and 6.7 mm (Eq. 13 + 14) against 6.5 mm sparse, and the
-# rendered depth at 6.5 mm, so the bar (10 % below sparse) is **not met** (over eight seeds: 6.85 against 6.91 mm).
-# The section *Where the `whitewall` ATE comes from* shows why: over the coast the runs average 9.6-11.7 mm against
+# relocalised against the map. Dense is at 6.9 mm (Eq. 13 and Eq. 13 + 14) against 6.5 mm sparse, and the
+# rendered depth at 5.8 mm, so the bar (10 % below sparse) is **not met** (over sixteen seeds: 8.06 against 7.90 mm).
+# The section *Where the `whitewall` ATE comes from* shows why: over the coast the runs average 10.2-11.7 mm against
 # 7.2 mm for an IMU smoothed between exact end states (5.4 mm with a perfect wall-distance sensor), each side of the
-# coast aligned on its own is 1.6-4.3 mm off, and what sets the ATE is the frame jump between the two sides
-# at the relocalisation (0.5-14 mm, 0.17-0.42°): how the trajectory after it ties back to the old map. No depth
-# residual acts on that tie. The optimised codes lower the keyframes' depth RMSE: from the prior's 0.212 m to
-# 0.204 m on `textured` and from 0.297 m to 0.285 m on `whitewall` (Eq. 13 alone: 0.214 to 0.209 m and 0.298 to
-# 0.288 m). The sparse map points are more accurate (0.04-0.05 m) but cover under 1 % of the pixels. The dense
-# system ran at 30-48 frames/s (means 32-43) against 90-123 for the sparse one on this shared CPU (bar: 15).
+# coast aligned on its own is 2.3-3.7 mm off, and what sets the ATE is the frame jump between the two sides
+# at the relocalisation (2.0-11.3 mm, 0.22-0.37°): how the trajectory after it ties back to the old map. No depth
+# residual of the network acts on that tie. The optimised codes lower the keyframes' depth RMSE: from the prior's
+# 0.143 m to 0.137 m on `textured` and from 0.202 m to 0.196 m on `whitewall` (Eq. 13 alone: 0.142 to 0.137 m and
+# 0.197 to 0.193 m). The sparse map points are more accurate (0.04-0.05 m) but cover under 1 % of the pixels. The
+# dense system ran at 29-49 frames/s (means 32-43) against 87-128 for the sparse one on this shared CPU (bar: 15).
 #
 # Re-run (from the repository root, venv active; writes under `OUT`, here `outputs/notebooks/03_trajectories/`;
 # the sequences are cached in `DATA`, rendering one 60 s sequence takes about 2 minutes):

@@ -23,24 +23,26 @@
 #
 # **Budget of the committed run.** The `whitewall` sequence of `benchmarks/bench_dense.py` (60 s, 752x480 at 20 Hz,
 # IMU noise, seed 0; cached under `data/sim/bench_dense/`), both runs up to the end of the hold (33 s, 661 frames),
-# the shipped depth model (`runtime/assets/default_model`, 128x128), the package's default `DenseConfig` at the time
-# of the run (printed below; `sigma_per_b` = 8√2, `edge_rel` = 0.05, `start_after_s` = 5). The committed run took
-# 21 s (2026-11-25, AMD EPYC, 2 cores shared with other jobs, load 0.7), the sequence being cached.
+# the shipped depth model (`runtime/assets/default_model`, 128x128; the second one, 2026-11-25), the package's default
+# `DenseConfig` at the time of the run (printed below; `sigma_per_b` = 8√2, `edge_rel` = 0.05, `start_after_s` = 5).
+# The committed run took 20 s (2026-11-25, AMD EPYC, 2 cores shared with other jobs, load 1.2), the sequence being
+# cached.
 #
-# **What the committed run shows.** From 24.9 s to the stop the frontend finds not a single corner in the keyframe
-# images (18 keyframes); both runs lose visual tracking at 25.3 s and coast on the IMU. At the stop, the sparse map
+# **What the committed run shows.** From 24.8 s to the stop the frontend finds not a single corner in the keyframe
+# images (18 keyframes); both runs lose visual tracking at 25.3-25.4 s and coast on the IMU. At the stop, the sparse map
 # (481 points) holds 48 points within 0.25 m of the bare wall: 0.3 % of the wall's 10 cm cells. The local dense map
-# (57,902 points from the 10 window keyframes) puts 41,634 points there and covers 21 % of the wall, the part the
-# camera saw, at an RMS distance of 0.12 m from the true plane; the other 16,268 lie up to about 0.5 m in front of
+# (65,196 points from the 10 window keyframes) puts 21,179 points there and covers 17 % of the wall, the part the
+# camera saw, at an RMS distance of 0.19 m from the true plane; the other 44,017 lie further off, mostly in front of
 # it (the top view: the drift of the hold plus the network's depth error on a blank wall). ATE up
-# to the stop: 0.22 m dense, 0.25 m sparse; the sparse run is still coasting there: in the full runs of notebook 03
-# both re-find the map after the hold and their coasted keyframes are corrected (60 s ATE 9.1 mm dense Eq. 13 + 14,
-# 8.5 mm sparse on this seed). The optimised codes lower the depth RMSE of the keyframes from 0.44 m (prior, c = 0)
-# to 0.41 m; on the white-wall keyframe the decoded depth is 0.13 m RMSE off a wall at 1.45-1.5 m, with an
-# uncertainty `B` of about 0.1-0.15 m over the middle of the image. Fig. 4: on the textured keyframe (8-15 features
-# per cell) the samples vary mildly against the features (25-41 per cell); on the keyframe where the wall enters the
-# view (its left third bare), the three cells without features receive 70-71 samples each, the three with the most
-# features (11-16) none and the rest 22-39; on the bare wall `q` is uniform and so are the samples (33-34 per cell).
+# to the stop: 0.28 m dense, 0.25 m sparse; both runs are still coasting there: in the full runs of notebook 03
+# both re-find the map after the hold and their coasted keyframes are corrected (60 s ATE 9.3 mm dense Eq. 13 + 14,
+# 8.5 mm sparse on this seed). The optimised codes lower the depth RMSE of the keyframes from 0.31 m (prior, c = 0)
+# to 0.29 m; on the white-wall keyframe the decoded depth is 0.067 m RMSE off a wall at 1.45-1.5 m, with an
+# uncertainty `B` of about 0.05-0.07 m over the middle of the image and up to 0.2 m at its border. Fig. 4: on the
+# textured keyframe (8-15 features per cell) the samples vary mildly against the features (25-41 per cell); on the
+# keyframe where the wall enters the view (its left two thirds bare), the six cells without features receive 50
+# samples each and the three with features (10-17) none; on the bare wall `q` is uniform and so are the samples
+# (33-34 per cell).
 #
 # Re-run (from the repository root, venv active; writes under `OUT`, here `outputs/notebooks/04_textureless/`):
 #

@@ -20,17 +20,18 @@
 # **50** synthetic validation frames rendered by `dit-sim nyu` (seed 0), width multiplier 1.0. The paper
 # trains on real NYU Depth V2 at 224x224 to convergence; the numbers here only show the *shape* of the
 # comparison on synthetic rooms after a short schedule, and the ordering of the variants may differ from the
-# paper's. Inference times are torch batch-1 forward passes at 96x96 on this CPU. The committed run took 14
-# minutes (2026-11-21, AMD EPYC, 2 cores shared with other jobs, load 0.4-2.6; two earlier identical runs at
-# loads 2-8 took 15 and 18 minutes and gave the same metrics: training is seeded and deterministic).
+# paper's. Inference times are torch batch-1 forward passes at 96x96 on this CPU. The committed run took 15.5
+# minutes (929 s; 2026-11-25, AMD EPYC, 2 cores shared with other jobs). It was re-run for the second shipped model
+# (last section); the ablation's accuracy figures equal those of the three runs of 2026-11-21 (14-18 minutes at
+# loads 0.4-8): training is seeded and deterministic.
 #
 # **What the committed run shows.** 120 steps are too few for any variant to beat the per-image median-GT
 # reference (0.362 m RMSE): without sparse depth (RGB, G) every variant stays close to a constant depth
 # (RMSE 0.75-0.80 m, δ1 ≈ 38 %), and metric sparse depth is what moves them (G → G-S: RMSE −26 % for DiT,
 # −44 % for FastDepth, whose direct regression learns fastest; DiT is 2nd-3rd of 4 with sparse depth). So
-# the ordering here is *not* the paper's. The shipped default model, trained on 10x more images at
-# 128x128 (600 steps of batch 16), does beat the reference: 0.279 m against 0.362 m on the same 50 frames
-# (last section).
+# the ordering here is *not* the paper's. The shipped default model, trained on 2000 images at 128x128
+# (2400 steps of batch 16), does beat the reference: 0.166 m against 0.362 m on the same 50 frames (last
+# section; the first shipped model, 600 steps on 1000 images, was at 0.279 m).
 #
 # Re-run (from the repository root, venv active; writes under `OUT`, here
 # `outputs/notebooks/01_depth_modalities/`):
@@ -297,8 +298,8 @@ for cell, fig_name, label in (
 # %% [markdown]
 # ## The shipped default model (ONNX Runtime)
 #
-# `runtime/assets/default_model` is what `dit-slam` uses when no model is given (trained with the project's
-# default `python train/fit.py` preset, exported with `dit-export`). Here it runs through
+# `runtime/assets/default_model` is what `dit-slam` uses when no model is given (trained with `python train/fit.py`,
+# the default preset with 2400 steps on 2000 frames, exported with `dit-export`; its README). Here it runs through
 # `runtime.network.DepthNetwork` (ONNX Runtime, no torch): `prior(image, sparse)` once per frame, then the
 # decoder at the zero code. Inputs come from the same validation frames via the evaluation transform at the
 # model's own input size (125 noise-free FAST samples for `*s`). With `DATA_SEED = 0` these are rooms the

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import hashlib
 import json
 import math
@@ -332,17 +333,21 @@ DENSE_LABEL = {
 }
 
 
+@functools.cache
+def _shipped_sha256(name: str) -> str | None:
+    """SHA-256 of one file of the shipped model (None when it is missing), read once per build."""
+    f = REPO / "runtime" / "assets" / "default_model" / name
+    return hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None
+
+
 def _dense_model(d: dict) -> str:
     """Which depth network a ``bench_dense`` result used (its ``model``, written since ``--model`` exists)."""
     m = d.get("model")
     if m is None:  # written before the runs named their model: the first shipped model was the only one
         return "the first shipped depth model (2026-11-21, 600 steps; regenerated-val RMSE 0.293 m)"
-    shipped = REPO / "runtime" / "assets" / "default_model"
-    same = all(
-        (shipped / f).is_file() and hashlib.sha256((shipped / f).read_bytes()).hexdigest() == h
-        for f, h in m.get("sha256", {}).items()
-    )
-    return "the shipped depth model" if same and m.get("sha256") else f"the depth model in `{m.get('dir')}`"
+    sha = m.get("sha256") or {}
+    same = bool(sha) and all(_shipped_sha256(f) == h for f, h in sha.items())
+    return "the shipped depth model" if same else f"the depth model in `{m.get('dir')}`"
 
 
 def _table3() -> list[str]:

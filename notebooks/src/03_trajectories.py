@@ -39,7 +39,8 @@
 # 0.15 m, errors correlated over a map) is what limits them.
 # On `whitewall` every run loses visual tracking in front of the bare wall for about 10 s, coasts on the IMU and is
 # relocalised against the map. Dense is at 6.9 mm (Eq. 13 and Eq. 13 + 14) against 6.5 mm sparse, and the
-# rendered depth at 5.8 mm, so the bar (10 % below sparse) is **not met** (over sixteen seeds: 8.06 against 7.90 mm).
+# rendered depth at 5.8 mm, so the bar (10 % below sparse) is **not met** (over sixteen seeds: 8.06 against 7.90 mm,
+# and even the rendered depth is only 4.7 % below sparse there, 7.53 mm: no depth source reaches the bar).
 # The section *Where the `whitewall` ATE comes from* shows why: over the coast the runs average 10.2-11.7 mm against
 # 7.2 mm for an IMU smoothed between exact end states (5.4 mm with a perfect wall-distance sensor), each side of the
 # coast aligned on its own is 2.3-3.7 mm off, and what sets the ATE is the frame jump between the two sides

@@ -633,7 +633,7 @@ def make_consistency_factor(
         return _fixed_pose_consistency_factor(code_keys, providers, (T1, T2), geometry, sigmas, ekw, offset_w, cfg)
     kx1, kx2 = (int(k) for k in pose_keys)
     if code_keys is None:
-        return _fixed_depth_consistency_factor((kx1, kx2), depths0, T_b_c, K, lookup2, rays2, sigmas, cfg)
+        return _fixed_depth_consistency_factor((kx1, kx2), depths0, geometry, sigmas, ekw, cfg)
     kc1, kc2 = (int(k) for k in code_keys)
     if len({kx1, kx2, kc1, kc2}) != 4:
         raise ValueError(f"keys must be distinct, got {pose_keys}, {code_keys}")
@@ -670,27 +670,17 @@ def remove_weighted_offset(r: np.ndarray, jacobians, valid: np.ndarray, w: np.nd
     return r, jacobians
 
 
-def _fixed_depth_consistency_factor(keys, depths, T_b_c, K, lookup2, rays2, sigmas, cfg: DepthFactorConfig):
-    """Eq. 14 with both depth maps fixed: keys ``[X(k1), X(k2)]`` (:func:`make_consistency_factor`)."""
+def _fixed_depth_consistency_factor(keys, depths, geometry, sigmas, ekw, cfg: DepthFactorConfig):
+    """Eq. 14 with both depth maps fixed: keys ``[X(k1), X(k2)]`` (:func:`make_consistency_factor`; ``geometry``
+    and ``ekw`` as in :func:`_coded_consistency`)."""
     kx1, kx2 = keys
     if kx1 == kx2:
         raise ValueError(f"keys must be distinct, got {keys}")
     d1, d2 = (np.asarray(d, np.float64) for d in depths)
 
     def error_fn(values, want_jacobians: bool):
-        res = consistency_residuals(
-            values.atPose3(kx1).matrix(),
-            values.atPose3(kx2).matrix(),
-            T_b_c,
-            K,
-            lookup2,
-            rays2,
-            d1,
-            d2,
-            min_depth=cfg.min_depth,
-            pose_jacobians=want_jacobians,
-            edge_rel=cfg.edge_rel,
-        )
+        poses = (values.atPose3(kx1).matrix(), values.atPose3(kx2).matrix())
+        res = consistency_residuals(*poses, *geometry, d1, d2, pose_jacobians=want_jacobians, **ekw)
         return res.r, (list(res.jacobians[:2]) if want_jacobians else None)
 
     return custom_factor(_noise(sigmas, cfg.consis_huber_k), [kx1, kx2], error_fn, [6, 6], check=cfg.check_shapes)

@@ -395,6 +395,31 @@ class SlidingWindowBackend:
         scores.sort(key=lambda s: (-s[0], -s[1]))
         return [k for s, k in scores[:n] if s > 0]
 
+    def window_ids(self) -> list[int]:
+        """Ids of the active keyframes, oldest first (a copy)."""
+        return list(self.active)
+
+    def has_keyframe(self, kf_id: int) -> bool:
+        """Whether ``kf_id`` is in the window (active or anchor)."""
+        return kf_id in self.keyframes
+
+    def keyframe(self, kf_id: int) -> Keyframe:
+        """The window's keyframe ``kf_id`` (active or anchor); KeyError when it is not in the window."""
+        return self.keyframes[kf_id]
+
+    def observations(self, kf_id: int, min_views: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Landmarks of the window observed by keyframe ``kf_id`` with at least ``min_views`` observations:
+        ids (N,), positions ``X_w`` (N, 3) [m] and the keyframe's undistorted pixels (N, 2), in the order of
+        the keyframe's observation set."""
+        ids = []
+        for j in self.kf_obs.get(kf_id, ()):
+            lm = self.landmarks.get(j)
+            if lm is not None and kf_id in lm.obs and len(lm.obs) >= min_views:
+                ids.append(j)
+        X_w = np.array([self.landmarks[j].X_w for j in ids], dtype=np.float64).reshape(-1, 3)
+        uv = np.array([self.landmarks[j].obs[kf_id] for j in ids], dtype=np.float64).reshape(-1, 2)
+        return np.array(ids, dtype=np.int64), X_w, uv
+
     def landmark_positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions (N, 3) of landmarks by id and a mask of those that exist in the window."""
         out = np.zeros((len(ids), 3))

@@ -6,7 +6,7 @@ upper bound of what a better network could buy: ``dense_gt_eq13_14``).
     python benchmarks/bench_dense.py                              # 60 s, seeds 0 1 2 (the setting)
     python benchmarks/bench_dense.py --duration 30 --seeds 0      # smaller (whitewall needs >= 24 s)
     python benchmarks/bench_dense.py --scale 0.5 --set n_consis=200   # half-resolution images
-    python benchmarks/bench_dense.py --presets whitewall --slam-set backend.smooth_coast=false   # a runtime key
+    python benchmarks/bench_dense.py --presets whitewall --slam-set backend.window_size=8   # a runtime key
     python benchmarks/bench_dense.py --modes dense_eq13_14 --model outputs/export/my_model   # another network
 
 Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one process, runs one after another),
@@ -39,7 +39,7 @@ from benchmarks.bench_slam import make_config, parse_value  # noqa: E402
 from benchmarks.common import cpu_model, write_json  # noqa: E402
 from runtime.dense import DenseConfig  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
-from runtime.slam import run_sequence  # noqa: E402
+from runtime.run import run_sequence  # noqa: E402
 
 MODES = {
     "sparse": None,
@@ -244,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         "--slam-set",
         nargs="*",
         default=[],
-        help="SlamConfig overrides key=value (conf/runtime keys, e.g. backend.smooth_coast=false)",
+        help="SlamConfig overrides key=value (conf/runtime keys, e.g. backend.window_size=8)",
     )
     ap.add_argument(
         "--model",

@@ -28,9 +28,10 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import cpu_model  # noqa: E402
-from runtime.cli import default_sequence  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
-from runtime.slam import SlamConfig, run_sequence  # noqa: E402
+from runtime.run import run_sequence  # noqa: E402
+from runtime.slam import SlamConfig  # noqa: E402
+from sim.cache import cached_sequence as default_sequence  # noqa: E402
 
 STAGES = (
     "read",

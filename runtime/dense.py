@@ -77,7 +77,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class DenseConfig:
-    """Settings of the dense (tightly coupled) system (Hydra ``dense_settings`` in ``conf/slam.yaml``).
+    """Settings of the dense (tightly coupled) system (Hydra ``dense_settings`` in ``conf/slam/slam.yaml``).
 
     Attributes:
         n_code_keyframes: keyframes of the window with a depth code (the newest + its most co-visible ones).
@@ -192,7 +192,7 @@ class DenseConfig:
     @classmethod
     def from_dict(cls, d: dict | None) -> DenseConfig:
         """Build from a mapping; unknown keys raise naming the key."""
-        from runtime.slam import _dataclass_from_dict
+        from runtime.config import dataclass_from_dict as _dataclass_from_dict
 
         return _dataclass_from_dict(cls, d or {}, "dense_settings")
 
@@ -384,7 +384,7 @@ class DenseMapper:
         """
         t0 = time.perf_counter()
         self._arm_start(backend, kf_id)
-        for k in [k for k in self.kfs if k not in backend.keyframes]:  # a reset cleared the window
+        for k in [k for k in self.kfs if k not in backend.map.keyframes]:  # a reset cleared the window
             del self.kfs[k]
         und = self.camera.undistort_image(image)
         img_net = self.mapping.image_to_network(und)
@@ -408,13 +408,12 @@ class DenseMapper:
     def _observed_points(self, backend, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N, 2) and depths (N,) of the valid landmarks observed by ``kf_id``, projected
         with their current positions."""
-        kf = backend.keyframes[kf_id]
-        ids = [
-            j for j in backend.kf_obs.get(kf_id, ()) if j in backend.landmarks and len(backend.landmarks[j].obs) >= 2
-        ]
+        kf = backend.map.keyframes[kf_id]
+        lms = backend.map.landmarks
+        ids = [j for j in backend.map.kf_obs.get(kf_id, ()) if j in lms and len(lms[j].obs) >= 2]
         if not ids:
             return np.zeros((0, 2)), np.zeros(0)
-        X = np.array([backend.landmarks[j].X_w for j in ids])
+        X = np.array([backend.map.landmarks[j].X_w for j in ids])
         T_c_w = self.T_c_b @ inv_T(kf.T_w_b)
         p = X @ T_c_w[:3, :3].T + T_c_w[:3, 3]
         z = p[:, 2]
@@ -426,13 +425,13 @@ class DenseMapper:
 
     # ------------------------------------------------------------------ FactorProvider
     def _select(self, backend) -> list[int]:
-        newest = backend.active[-1]
-        cand = [newest] + backend.covisible_keyframes(newest, len(backend.active))
+        newest = backend.map.active[-1]
+        cand = [newest] + backend.covisible_keyframes(newest, len(backend.map.active))
         out = [k for k in cand if k in self.kfs][: self.cfg.n_code_keyframes]
         if self.cfg.fill_recent and len(out) < self.cfg.n_code_keyframes:
             # too few co-visible keyframes (textureless stretch, visual tracking lost): the most recent ones
             # overlap the newest by motion continuity
-            for k in reversed(backend.active):
+            for k in reversed(backend.map.active):
                 if len(out) >= self.cfg.n_code_keyframes:
                     break
                 if k in self.kfs and k not in out:
@@ -444,11 +443,11 @@ class DenseMapper:
         (the first of the run, or a re-initialisation after a reset: the backend's ``init_kf_id`` changed)."""
         init_id = getattr(backend, "init_kf_id", None)
         if self.t_first_ns is None or init_id != self.armed_for:
-            self.t_first_ns = int(backend.keyframes[kf_id].ts)
+            self.t_first_ns = int(backend.map.keyframes[kf_id].ts)
             self.armed_for = init_id
 
     def _started(self, backend) -> bool:
-        newest = backend.keyframes[backend.active[-1]]
+        newest = backend.map.keyframes[backend.map.active[-1]]
         return self.t_first_ns is not None and (newest.ts - self.t_first_ns) * 1e-9 >= self.cfg.start_after_s
 
     def add_factors(self, backend, graph, values) -> None:
@@ -473,8 +472,8 @@ class DenseMapper:
             graph.push_back(gtsam.PriorFactorVector(C(k), np.zeros(Cd), prior_noise))
             if cfg.use_depth_residual:
                 ids, uv = [], []
-                for j in backend.kf_obs.get(k, ()):
-                    lm = backend.landmarks.get(j)
+                for j in backend.map.kf_obs.get(k, ()):
+                    lm = backend.map.landmarks.get(j)
                     if lm is None or k not in lm.obs or not values.exists(L(j)):
                         continue
                     ids.append(j)
@@ -482,7 +481,7 @@ class DenseMapper:
                 if ids:
                     uvn = self.mapping.points_to_network(np.array(uv))
                     if cfg.geo_fixed_landmarks:
-                        where = {"landmarks_w": np.array([backend.landmarks[j].X_w for j in ids])}
+                        where = {"landmarks_w": np.array([backend.map.landmarks[j].X_w for j in ids])}
                     else:
                         where = {"landmark_keys": [L(j) for j in ids]}
                     if cfg.edge_rel is not None:
@@ -500,7 +499,7 @@ class DenseMapper:
                     (k1, k2),
                     (d1.provider, d2.provider),
                     d2.feat_uv,
-                    (backend.keyframes[k1].T_w_b, backend.keyframes[k2].T_w_b),
+                    (backend.map.keyframes[k1].T_w_b, backend.map.keyframes[k2].T_w_b),
                     (d1.code, d2.code),
                 )
                 if f is not None:
@@ -563,7 +562,7 @@ class DenseMapper:
             return
         self._evaluate(backend, d)
         if self.cfg.bridge_span > 0:
-            for k in [k for k in self.archive if k not in backend.archived_states]:
+            for k in [k for k in self.archive if k not in backend.archive.states]:
                 del self.archive[k]
             self.archive[kf_id] = self._fixed(d)
         del self.kfs[kf_id]
@@ -623,7 +622,7 @@ class DenseMapper:
     def finish(self, backend, out_dir: str | Path) -> dict:
         """Write ``dense_map.ply`` and per-keyframe maps; return the dense metrics for ``metrics.json``."""
         out = Path(out_dir)
-        active = [k for k in backend.active if k in self.kfs]
+        active = [k for k in backend.map.active if k in self.kfs]
         for k in active:
             self._evaluate(backend, self.kfs[k])
         depths, poses, uncs, imgs = [], [], [], []
@@ -631,7 +630,7 @@ class DenseMapper:
             d = self.kfs[k]
             depth = self.final_depth(d)
             depths.append(depth)
-            poses.append(backend.keyframes[k].T_w_b)
+            poses.append(backend.map.keyframes[k].T_w_b)
             uncs.append(d.provider.uncertainty)
             imgs.append(d.image)
             if self.cfg.save_maps:

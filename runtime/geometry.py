@@ -17,6 +17,25 @@ import numpy as np
 
 GRAVITY = 9.81
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY])  # m/s^2 in the world frame
+NS_PER_S = 1_000_000_000  # timestamps are int64 nanoseconds
+
+
+def ns_to_s(t_ns):
+    """Nanoseconds (int or array) to float seconds.
+
+    >>> ns_to_s(1_500_000_000)
+    1.5
+    """
+    return np.asarray(t_ns) * 1e-9 if np.ndim(t_ns) else float(t_ns) * 1e-9
+
+
+def s_to_ns(t_s) -> int:
+    """Seconds (float) to integer nanoseconds, truncated toward zero (a duration, as ``int(t_s * 1e9)``).
+
+    >>> s_to_ns(0.25)
+    250000000
+    """
+    return int(float(t_s) * NS_PER_S)
 
 
 # --------------------------------------------------------------------------- SO(3) / SE(3)
@@ -413,3 +432,70 @@ class NetworkMapping:
         return cv2.warpAffine(
             image, A, (self.out_w, self.out_h), flags=interp, borderMode=cv2.BORDER_CONSTANT
         )
+
+
+# --------------------------------------------------------------------------- projection and interpolation
+def project_pinhole(K, p_c: np.ndarray, min_abs_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection (no distortion) of camera-frame points.
+
+    Args:
+        K: ``(fx, fy, cx, cy)``.
+        p_c: (N, 3) points in the camera frame [m].
+        min_abs_depth: None: divide by z as it is (callers mask); else |z| is floored at this for the division.
+
+    Returns:
+        uv (N, 2) pixels ``(fx x / z + cx, fy y / z + cy)`` and z (N,) (unfloored).
+
+    >>> project_pinhole((100.0, 100.0, 50.0, 40.0), np.array([[0.2, -0.4, 2.0]]))[0].tolist()
+    [[60.0, 20.0]]
+    """
+    fx, fy, cx, cy = (float(k) for k in K)
+    p_c = np.asarray(p_c, dtype=np.float64).reshape(-1, 3)
+    z = p_c[:, 2]
+    zs = z if min_abs_depth is None else np.where(np.abs(z) > min_abs_depth, z, min_abs_depth)
+    return np.stack([fx * p_c[:, 0] / zs + cx, fy * p_c[:, 1] / zs + cy], -1), z
+
+
+def blend_poses(T_a: np.ndarray, T_b: np.ndarray, w) -> np.ndarray:
+    """Poses between ``T_a`` and ``T_b`` ((4, 4) or (N, 4, 4)) at fractions ``w`` (scalar or (N,)) in [0, 1]:
+    position linear, rotation along the geodesic (slerp), ``R_a Exp(w Log(R_a^T R_b))``.
+
+    >>> T = blend_poses(np.eye(4), make_T(so3_exp([0, 0, 1.0]), [2.0, 0, 0]), 0.5)
+    >>> np.round(T[:3, 3], 6).tolist(), round(float(so3_log(T[:3, :3])[2]), 6)
+    ([1.0, 0.0, 0.0], 0.5)
+    """
+    from scipy.spatial.transform import Rotation
+
+    single = np.ndim(T_a) == 2
+    Ta, Tb = np.asarray(T_a, np.float64).reshape(-1, 4, 4), np.asarray(T_b, np.float64).reshape(-1, 4, 4)
+    w = np.broadcast_to(np.asarray(w, np.float64), (Ta.shape[0],))
+    rel = Rotation.from_matrix(np.einsum("nji,njk->nik", Ta[:, :3, :3], Tb[:, :3, :3])).as_rotvec()
+    out = np.tile(np.eye(4), (Ta.shape[0], 1, 1))
+    out[:, :3, :3] = Ta[:, :3, :3] @ Rotation.from_rotvec(w[:, None] * rel).as_matrix()
+    out[:, :3, 3] = (1 - w)[:, None] * Ta[:, :3, 3] + w[:, None] * Tb[:, :3, 3]
+    return out[0] if single else out
+
+
+def interpolate_poses(ts_query: np.ndarray, ts: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N, 4, 4) at ``ts_query`` (ns) from a trajectory (``ts`` (K,) ns increasing, ``T`` (K, 4, 4)), and
+    a mask (N,) of the queries inside ``[ts[0], ts[-1]]`` (the poses of the others are the identity).
+
+    >>> T = np.stack([np.eye(4), make_T(t=[1.0, 0, 0])])
+    >>> interpolate_poses(np.array([5, 20]), np.array([0, 10]), T)[0][:, 0, 3].tolist()
+    [0.5, 0.0]
+    """
+    ts_query = np.asarray(ts_query, dtype=np.int64).reshape(-1)
+    ts = np.asarray(ts, dtype=np.int64)
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    inside = (ts_query >= ts[0]) & (ts_query <= ts[-1])
+    out = np.tile(np.eye(4), (ts_query.size, 1, 1))
+    q = ts_query[inside]
+    if q.size == 0:
+        return out, inside
+    if ts.size == 1:
+        out[inside] = T[0]
+        return out, inside
+    i = np.clip(np.searchsorted(ts, q, side="right") - 1, 0, ts.size - 2)  # ts[i] <= q <= ts[i+1]
+    a = (q - ts[i]).astype(np.float64) / (ts[i + 1] - ts[i]).astype(np.float64)
+    out[inside] = blend_poses(T[i], T[i + 1], a)
+    return out, inside

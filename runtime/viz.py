@@ -57,7 +57,7 @@ class RerunRecorder:
             rec.log("world/camera/image", rr.Image(image).compress(jpeg_quality=70))
         f = system.tracker.current(ts)
         if f.ids.size:
-            is_lm = np.array([int(j) in system.backend.landmarks for j in f.ids], dtype=bool)
+            is_lm = np.array([int(j) in system.map.landmarks for j in f.ids], dtype=bool)
             colors = np.where(is_lm[:, None], [[40, 220, 60]], [[240, 160, 30]]).astype(np.uint8)
             rec.log("world/camera/image/tracks", rr.Points2D(f.uv, colors=colors, radii=2.0))
         if record is None:
@@ -68,9 +68,9 @@ class RerunRecorder:
         if len(self.positions) % 10 == 0 or is_kf:
             rec.log("world/trajectory", rr.LineStrips3D([np.array(self.positions)], colors=[[230, 60, 60]]))
         if is_kf:
-            v = system.backend.window_view()
-            if v["X_w"].shape[0]:
-                rec.log("world/window_landmarks", rr.Points3D(v["X_w"], colors=[[40, 220, 60]], radii=0.01))
+            _, X_w = system.map.landmark_arrays()
+            if X_w.shape[0]:
+                rec.log("world/window_landmarks", rr.Points3D(X_w, colors=[[40, 220, 60]], radii=0.01))
 
     def log_final(
         self,

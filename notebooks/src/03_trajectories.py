@@ -11,7 +11,7 @@
 # of a bare wall, see notebook 04), through the functions of the Table 3 benchmark
 # (`benchmarks/bench_dense.py`: `sequence` renders and caches the sequences, `MODES` and `_dense_cfg` give
 # each mode's `DenseConfig` on top of the package defaults, `_row` / `fmt_table` / `bars` tabulate) and
-# `runtime.slam.run_sequence`, which writes each run's `trajectory.txt` (TUM) and `metrics.json`; the tables
+# `runtime.run.run_sequence`, which writes each run's `trajectory.txt` (TUM) and `metrics.json`; the tables
 # and figures below are read back from those files. Besides ATE and FPS the table carries the depth RMSE of
 # Table 2 on the keyframes that held a code: (a) the sparse map points, (b) the network prior at c = 0,
 # (c) the optimised code (dense modes only).
@@ -98,7 +98,8 @@ from IPython.display import Image, Markdown, display
 from runtime.eval import trajectory_metrics
 from runtime.io.euroc import read_euroc
 from runtime.io.tum import read_tum
-from runtime.slam import SlamConfig, run_sequence
+from runtime.run import run_sequence
+from runtime.slam import SlamConfig
 
 matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json

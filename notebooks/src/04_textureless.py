@@ -12,7 +12,7 @@
 # This notebook shows both on the synthetic `whitewall` sequence rendered by `sim/` (`dit-sim euroc
 # preset=whitewall`): the camera explores a room looking at a side wall, turns to hover 1.35-1.6 m in front
 # of the bare wall `x = Lx` for 6 s (the *hold*; `sim_info.json` gives its time), then turns back. It calls
-# only the packages: `runtime.slam.run_sequence` (sparse, and dense with Eq. 13 + 14 and the package's
+# only the packages: `runtime.run.run_sequence` (sparse, and dense with Eq. 13 + 14 and the package's
 # default `DenseConfig`), `runtime.render` (z-buffered point splats from a virtual camera, SE(3) alignment
 # to ground truth), `runtime.sampling.sample_consistency_pixels` (the sampler the dense system calls) and
 # the frontend's `FeatureDetector`.
@@ -96,7 +96,8 @@ from runtime.io.tum import read_tum
 from runtime.network import DepthNetwork, default_model_dir
 from runtime.render import align_se3, look_at, project_points, render_points
 from runtime.sampling import cell_edges, cell_feature_counts, sample_consistency_pixels
-from runtime.slam import SlamConfig, run_sequence
+from runtime.run import run_sequence
+from runtime.slam import SlamConfig
 
 matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json

@@ -33,9 +33,7 @@ class ImuNoiseConfig:
 
     noise_scale: float = 1.0  # white-noise densities (gyro, accel)
     walk_scale: float = 1.0  # bias random walks
-    integration_sigma: float = (
-        1e-4  # [m/s^2 * sqrt(s)... ] position integration noise (GTSAM's integrationCovariance)
-    )
+    integration_sigma: float = 1e-4  # [m/s^2 * sqrt(s)... ] position integration noise (GTSAM's integrationCovariance)
     gravity: float = GRAVITY
     gap_factor: float = 4.0  # an interval longer than gap_factor / rate is logged as a gap
 
@@ -144,9 +142,7 @@ class ImuStream:
     @classmethod
     def from_sequence(cls, seq, gap_factor: float = 4.0) -> ImuStream:
         """Build from an io ``EurocSequence`` (``imu_ts``, ``gyro``, ``accel``, ``imu``)."""
-        return cls(
-            seq.imu_ts, seq.gyro, seq.accel, seq.imu.rate_hz, getattr(seq.imu, "T_b_s", None), gap_factor
-        )
+        return cls(seq.imu_ts, seq.gyro, seq.accel, seq.imu.rate_hz, getattr(seq.imu, "T_b_s", None), gap_factor)
 
     @property
     def t_start(self) -> int:

@@ -31,9 +31,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
-from runtime.geometry import Camera, quat_wxyz_to_R
+from runtime.geometry import Camera, interpolate_poses, quat_wxyz_to_R
+from runtime.io.asl_format import EurocFormatError, EurocWarning, read_text
+from runtime.io.sensor_yaml import ImuParams, load_sensor_yaml, read_camera_yaml, read_imu_yaml, sensor_float
 
 log = logging.getLogger(__name__)
 
@@ -94,36 +95,7 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _DIGITS = re.compile(r"\d+")
 
 
-class EurocFormatError(ValueError):
-    """A file of an EuRoC-layout sequence is missing or malformed; the message names file and problem."""
-
-
-class EurocWarning(UserWarning):
-    """Recoverable oddity in an EuRoC-layout sequence (e.g. a ``data.csv`` row whose image is missing)."""
-
-
 # --------------------------------------------------------------------------- data classes
-@dataclass(frozen=True, eq=False)
-class ImuParams:
-    """IMU noise model from ``imu0/sensor.yaml`` (continuous-time densities, as GTSAM expects them squared).
-
-    Attributes:
-        gyro_noise_density: gyroscope white noise [rad / s / sqrt(Hz)].
-        gyro_random_walk: gyroscope bias random walk [rad / s^2 / sqrt(Hz)].
-        accel_noise_density: accelerometer white noise [m / s^2 / sqrt(Hz)].
-        accel_random_walk: accelerometer bias random walk [m / s^3 / sqrt(Hz)].
-        rate_hz: nominal sample rate [Hz].
-        T_b_s: (4, 4) pose of the IMU sensor in the body frame (identity for EuRoC: body = IMU).
-    """
-
-    gyro_noise_density: float
-    gyro_random_walk: float
-    accel_noise_density: float
-    accel_random_walk: float
-    rate_hz: float
-    T_b_s: np.ndarray = field(default_factory=lambda: np.eye(4))
-
-
 @dataclass(eq=False)
 class GroundTruth:
     """Body (IMU) trajectory from ``state_groundtruth_estimate0/data.csv``.
@@ -183,35 +155,8 @@ class GroundTruth:
                 f"timestamp {bad} ns is outside the ground-truth range [{self.ts[0]}, {self.ts[-1]}] ns "
                 f"({int(outside.sum())} of {t.size} queried timestamps outside)"
             )
-        K = len(self)
-        if K == 1:  # only an exact hit is inside the range
-            out = np.broadcast_to(self.T_w_b[0], (t.size, 4, 4)).copy()
-            return out[0] if scalar else out
-        i = np.clip(np.searchsorted(self.ts, t, side="right") - 1, 0, K - 2)  # ts[i] <= t <= ts[i+1]
-        dt = (self.ts[i + 1] - self.ts[i]).astype(np.float64)
-        a = (t - self.ts[i]).astype(np.float64) / dt  # (N,) in [0, 1]
-        p = (1.0 - a)[:, None] * self.p_w_b[i] + a[:, None] * self.p_w_b[i + 1]
-        q = _slerp(self.q_wxyz[i], self.q_wxyz[i + 1], a)
-        out = np.zeros((t.size, 4, 4))
-        out[:, :3, :3] = quat_wxyz_to_R(q)
-        out[:, :3, 3] = p
-        out[:, 3, 3] = 1.0
+        out, _ = interpolate_poses(t, self.ts, self.T_w_b)
         return out[0] if scalar else out
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Shortest-path slerp of unit quaternions (N, 4) at fractions a (N,) in [0, 1]."""
-    dot = np.sum(q0 * q1, axis=-1)
-    q1 = np.where((dot < 0)[:, None], -q1, q1)
-    dot = np.clip(np.abs(dot), 0.0, 1.0)
-    theta = np.arccos(dot)
-    s = np.sin(theta)
-    small = s < 1e-9
-    s_safe = np.where(small, 1.0, s)
-    w0 = np.where(small, 1.0 - a, np.sin((1.0 - a) * theta) / s_safe)
-    w1 = np.where(small, a, np.sin(a * theta) / s_safe)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 @dataclass(eq=False)
@@ -335,177 +280,14 @@ def _png_size(path: Path) -> tuple[int, int] | None:
     return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
 
 
-class _OpenCvYamlLoader(yaml.SafeLoader):
-    """SafeLoader that also reads OpenCV's ``!!opencv-matrix`` mappings."""
-
-
-def _construct_opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node):
-    return loader.construct_mapping(node, deep=True)
-
-
-_OpenCvYamlLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", _construct_opencv_matrix)
-
-
-def load_sensor_yaml(path: str | Path) -> dict:
-    """Load an ASL ``sensor.yaml``; accepts OpenCV's ``%YAML:1.0`` first line and ``!!opencv-matrix`` tags.
-
-    Raises:
-        EurocFormatError: missing file, invalid YAML, or not a mapping.
-    """
-    path = Path(path)
-    text = _read_text(path)
-    lines = text.splitlines()
-    # PyYAML rejects OpenCV's "%YAML:1.0" directive (and YAML 1.0 itself): drop any leading %YAML line.
-    first = next((j for j, ln in enumerate(lines) if ln.strip()), None)
-    if first is not None and lines[first].lstrip().startswith("%YAML"):
-        del lines[first]
-    try:
-        data = yaml.load("\n".join(lines), Loader=_OpenCvYamlLoader)
-    except yaml.YAMLError as e:
-        raise EurocFormatError(f"{path}: invalid YAML ({e})") from e
-    if not isinstance(data, dict):
-        raise EurocFormatError(f"{path}: expected a YAML mapping, got {type(data).__name__}")
-    return data
-
-
-def _float(value, key: str, path: Path) -> float:
-    try:
-        x = float(value)  # PyYAML leaves e.g. "1e-3" (no dot) as a string: float() reads it
-    except (TypeError, ValueError):
-        raise EurocFormatError(f"{path}: '{key}' must be a number, got {value!r}") from None
-    if not np.isfinite(x):
-        raise EurocFormatError(f"{path}: '{key}' is not finite ({value!r})")
-    return x
-
-
-def _require(data: dict, key: str, path: Path):
-    if key not in data:
-        raise EurocFormatError(f"{path}: missing key '{key}'")
-    return data[key]
-
-
-def _float_list(data: dict, key: str, n: int | Sequence[int], path: Path) -> list[float]:
-    value = _require(data, key, path)
-    ns = (n,) if isinstance(n, int) else tuple(n)
-    if not isinstance(value, (list, tuple)) or len(value) not in ns:
-        raise EurocFormatError(
-            f"{path}: '{key}' must be a list of {' or '.join(map(str, ns))} numbers, got {value!r}"
-        )
-    return [_float(v, f"{key}[{j}]", path) for j, v in enumerate(value)]
-
-
-def _matrix4(data: dict, key: str, path: Path) -> np.ndarray:
-    """A rigid 4x4 transform stored as ``{rows: 4, cols: 4, data: [16 numbers, row-major]}``."""
-    m = _require(data, key, path)
-    if not isinstance(m, dict):
-        raise EurocFormatError(f"{path}: '{key}' must be a mapping with rows, cols, data; got {m!r}")
-    rows, cols = (int(_float(_require(m, k, path), f"{key}.{k}", path)) for k in ("rows", "cols"))
-    if (rows, cols) != (4, 4):
-        raise EurocFormatError(f"{path}: '{key}' must be 4x4, got rows={rows} cols={cols}")
-    vals = _float_list(m, "data", 16, path)
-    T = np.asarray(vals, dtype=np.float64).reshape(4, 4)  # row-major
-    R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9):
-        raise EurocFormatError(f"{path}: '{key}' last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    err = float(np.abs(R @ R.T - np.eye(3)).max())
-    if err > 1e-5 or np.linalg.det(R) < 0:
-        raise EurocFormatError(
-            f"{path}: '{key}' rotation is not a rotation "
-            f"(|R R^T - I| = {err:.2e}, det = {np.linalg.det(R):.6f})"
-        )
-    return T
-
-
-def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
-    """Read cam0's ``sensor.yaml``.
-
-    Returns:
-        camera (pinhole + radtan, size from ``resolution`` [w, h]), ``T_b_c`` (4, 4) from ``T_BS``,
-        ``rate_hz``.
-
-    Raises:
-        EurocFormatError: missing keys, wrong lengths, unsupported camera or distortion model.
-    """
-    path = Path(path)
-    d = load_sensor_yaml(path)
-    model = str(d.get("camera_model", "pinhole")).lower()
-    if model != "pinhole":
-        raise EurocFormatError(f"{path}: camera_model '{model}' is not supported (only 'pinhole')")
-    dmodel = str(d.get("distortion_model", "radial-tangential")).lower()
-    if dmodel not in ("radial-tangential", "radtan", "plumb_bob", "none"):
-        raise EurocFormatError(
-            f"{path}: distortion_model '{dmodel}' is not supported (only radial-tangential k1, k2, p1, p2)"
-        )
-    fx, fy, cx, cy = _float_list(d, "intrinsics", 4, path)
-    if fx <= 0 or fy <= 0:
-        raise EurocFormatError(f"{path}: focal lengths must be positive, got fu={fx}, fv={fy}")
-    if dmodel == "none" and "distortion_coefficients" not in d:
-        dist = [0.0, 0.0, 0.0, 0.0]
-    else:
-        dist = _float_list(d, "distortion_coefficients", (4, 5), path)
-        if len(dist) == 5:  # plumb_bob k1, k2, p1, p2, k3: only k3 = 0 is representable
-            if dist[4] != 0.0:
-                raise EurocFormatError(
-                    f"{path}: distortion_coefficients k3={dist[4]} is not supported (must be 0)"
-                )
-            dist = dist[:4]
-    w, h = _float_list(d, "resolution", 2, path)
-    if w <= 0 or h <= 0 or w != int(w) or h != int(h):
-        raise EurocFormatError(
-            f"{path}: resolution must be two positive integers [width, height], got {[w, h]}"
-        )
-    rate = _float(_require(d, "rate_hz", path), "rate_hz", path)
-    if rate <= 0:
-        raise EurocFormatError(f"{path}: rate_hz must be positive, got {rate}")
-    T_b_c = _matrix4(d, "T_BS", path)
-    cam = Camera(fx, fy, cx, cy, int(w), int(h), (dist[0], dist[1], dist[2], dist[3]))
-    return cam, T_b_c, rate
-
-
-def read_imu_yaml(path: str | Path) -> ImuParams:
-    """Read imu0's ``sensor.yaml`` (noise densities, random walks, ``rate_hz``, ``T_BS``)."""
-    path = Path(path)
-    d = load_sensor_yaml(path)
-    vals = {}
-    for key in (
-        "gyroscope_noise_density",
-        "gyroscope_random_walk",
-        "accelerometer_noise_density",
-        "accelerometer_random_walk",
-        "rate_hz",
-    ):
-        vals[key] = _float(_require(d, key, path), key, path)
-        if vals[key] < 0 or (key == "rate_hz" and vals[key] == 0):
-            raise EurocFormatError(f"{path}: '{key}' must be positive, got {vals[key]}")
-    T_b_s = _matrix4(d, "T_BS", path) if "T_BS" in d else np.eye(4)
-    return ImuParams(
-        gyro_noise_density=vals["gyroscope_noise_density"],
-        gyro_random_walk=vals["gyroscope_random_walk"],
-        accel_noise_density=vals["accelerometer_noise_density"],
-        accel_random_walk=vals["accelerometer_random_walk"],
-        rate_hz=vals["rate_hz"],
-        T_b_s=T_b_s,
-    )
-
-
 def _norm_name(name: str) -> str:
     """'#timestamp [ns]' / ' w_RS_S_x [rad s^-1]' -> 'timestamp' / 'w_rs_s_x'."""
     return re.sub(r"\[.*?\]", "", name).strip().lstrip("#").strip().lower()
 
 
-def _read_text(path: Path) -> str:
-    """The text of a sequence file; a missing or unreadable file raises naming it."""
-    if not path.is_file():
-        raise EurocFormatError(f"{path}: missing file")
-    try:
-        return path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        raise EurocFormatError(f"{path}: cannot read ({e})") from e
-
-
 def _data_lines(path: Path) -> tuple[list[str], np.ndarray, list[str]]:
     """Non-empty, non-comment lines of a CSV, their 1-based line numbers, and the comment lines."""
-    text = _read_text(path)
+    text = read_text(path)
     rows: list[str] = []
     numbers: list[int] = []
     comments: list[str] = []
@@ -535,9 +317,7 @@ def _bad_row(path: Path, rows: list[str], numbers: np.ndarray, columns: Sequence
     for s, ln in zip(rows, numbers, strict=True):
         parts = s.split(",")
         if len(parts) != len(columns):
-            return EurocFormatError(
-                f"{path}: line {ln}: expected {len(columns)} columns, got {len(parts)}: {s!r}"
-            )
+            return EurocFormatError(f"{path}: line {ln}: expected {len(columns)} columns, got {len(parts)}: {s!r}")
         if not _DIGITS.fullmatch(parts[0].strip()):
             return EurocFormatError(f"{path}: line {ln}: timestamp {parts[0]!r} is not an integer [ns]")
         for name, p in zip(columns[1:], parts[1:], strict=True):
@@ -594,8 +374,7 @@ def read_euroc_csv(path: str | Path, columns: Sequence[str]) -> tuple[np.ndarray
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise EurocFormatError(
-            f"{path}: line {numbers[r]}: column '{columns[c + 1]}' is {vals[r, c]} "
-            "(NaN/inf values are not allowed)"
+            f"{path}: line {numbers[r]}: column '{columns[c + 1]}' is {vals[r, c]} (NaN/inf values are not allowed)"
         )
     _check_increasing(path, ts, numbers)
     return ts, vals, numbers
@@ -611,9 +390,7 @@ def _read_file_list(path: Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     for j, (s, ln) in enumerate(zip(rows, numbers, strict=True)):
         parts = [p.strip() for p in s.split(",")]
         if len(parts) != 2:
-            raise EurocFormatError(
-                f"{path}: line {ln}: expected 2 columns (timestamp, filename), got {len(parts)}"
-            )
+            raise EurocFormatError(f"{path}: line {ln}: expected 2 columns (timestamp, filename), got {len(parts)}")
         if not _DIGITS.fullmatch(parts[0]):
             raise EurocFormatError(f"{path}: line {ln}: timestamp {parts[0]!r} is not an integer [ns]")
         if not parts[1] or "/" in parts[1] or "\\" in parts[1]:
@@ -624,9 +401,7 @@ def _read_file_list(path: Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     return ts, names, numbers
 
 
-def _existing(
-    path_csv: Path, data_dir: Path, ts: np.ndarray, names: list[str]
-) -> tuple[np.ndarray, list[Path]]:
+def _existing(path_csv: Path, data_dir: Path, ts: np.ndarray, names: list[str]) -> tuple[np.ndarray, list[Path]]:
     """Keep the rows whose file exists in ``data_dir``; warn (naming the files) about the others."""
     if not data_dir.is_dir():
         raise EurocFormatError(f"{data_dir}: missing folder (images listed in {path_csv})")
@@ -635,9 +410,7 @@ def _existing(
     if not keep.all():
         missing = [str(data_dir / n) for n, k in zip(names, keep, strict=True) if not k]
         shown = ", ".join(missing[:5]) + (f", ... ({len(missing) - 5} more)" if len(missing) > 5 else "")
-        msg = (
-            f"{path_csv}: {len(missing)} of {len(names)} rows name files that do not exist, skipped: {shown}"
-        )
+        msg = f"{path_csv}: {len(missing)} of {len(names)} rows name files that do not exist, skipped: {shown}"
         warnings.warn(msg, EurocWarning, stacklevel=3)
     return ts[keep], [data_dir / n for n, k in zip(names, keep, strict=True) if k]
 
@@ -651,9 +424,7 @@ def read_groundtruth(path: str | Path) -> GroundTruth:
     bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-2)
     if bad.size:
         j = int(bad[0])
-        raise EurocFormatError(
-            f"{path}: line {numbers[j]}: quaternion (w,x,y,z) has norm {norm[j]:.6f}, not 1"
-        )
+        raise EurocFormatError(f"{path}: line {numbers[j]}: quaternion (w,x,y,z) has norm {norm[j]:.6f}, not 1")
     q = q / norm[:, None]
     p = v[:, 0:3].copy()
     T = np.zeros((len(ts), 4, 4))
@@ -727,7 +498,7 @@ def read_euroc(root: str | Path) -> EurocSequence:
         if (depth_dir / "sensor.yaml").is_file():
             dy = load_sensor_yaml(depth_dir / "sensor.yaml")
             if "depth_scale" in dy:
-                depth_scale = _float(dy["depth_scale"], "depth_scale", depth_dir / "sensor.yaml")
+                depth_scale = sensor_float(dy["depth_scale"], "depth_scale", depth_dir / "sensor.yaml")
                 if depth_scale <= 0:
                     raise EurocFormatError(f"{depth_dir / 'sensor.yaml'}: depth_scale must be positive")
         dts, dnames, _ = _read_file_list(depth_dir / "data.csv")

@@ -20,7 +20,7 @@ def test_slam_set_reaches_the_runs_and_the_json(tmp_path, capsys):
     assert bench_dense.main(_argv(tmp_path, "--slam-set", "backend.window_size=6", "reloc.enabled=false")) == 0
     run = json.loads((tmp_path / "out" / "textured_s0_sparse" / "metrics.json").read_text())
     assert run["config"]["backend"]["window_size"] == 6 and run["config"]["reloc"]["enabled"] is False
-    assert run["config"]["backend"]["smooth_coast"] is True  # untouched keys keep the defaults
+    assert run["config"]["backend"]["marginal_visual_fix"] is True  # untouched keys keep the defaults
     res = json.loads((tmp_path / "out" / "bench_dense.json").read_text())
     assert res["args"]["slam_set"] == ["backend.window_size=6", "reloc.enabled=false"]
     assert res["machine"]["cpu"]  # runs differ between CPUs: the result names its CPU

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from runtime.cli import slam_main
+from apps.slam import main as slam_main
 from runtime.dense import DenseConfig, DenseMapper, GroundTruthDepth, LinearizedDepth, _KfDense, _Stats
 from runtime.geometry import to_pose3
 from runtime.io.euroc import read_euroc
 from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
 from runtime.network import DepthNetwork, default_model_dir
-from runtime.slam import run_sequence
+from runtime.run import run_sequence
 from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
 
 sim_euroc = pytest.importorskip("sim.euroc")

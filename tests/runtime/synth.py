@@ -23,9 +23,7 @@ EUROC_T_BS = np.array(
         [0.0, 0.0, 0.0, 1.0],
     ]
 )
-EUROC_CAM = Camera(
-    458.654, 457.296, 367.215, 248.375, 752, 480, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
-)
+EUROC_CAM = Camera(458.654, 457.296, 367.215, 248.375, 752, 480, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
 # camera at zero angles: optical axis along world +x, image x along -y, image y along -z
 R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -153,9 +151,7 @@ def room_points(n=3000, half=(4.0, 4.0), z=(-1.5, 2.5), seed=0):
 class FakeTracker:
     """Drop-in for :class:`FeatureTracker`: projections of known points (noise ``sigma_px``), unique ids."""
 
-    def __init__(
-        self, camera: Camera, T_b_c, points, motion: Motion, t0_ns, max_features=150, sigma_px=0.3, seed=0
-    ):
+    def __init__(self, camera: Camera, T_b_c, points, motion: Motion, t0_ns, max_features=150, sigma_px=0.3, seed=0):
         self.camera, self.T_b_c, self.points, self.motion, self.t0 = camera, T_b_c, points, motion, t0_ns
         self.max_features, self.sigma = max_features, sigma_px
         self.rng = np.random.default_rng(seed)
@@ -183,9 +179,7 @@ class FakeTracker:
 
     def _features(self, ts, flow=0.0):
         xn = self.camera.pixel_to_normalized(self.uv) if self.uv.shape[0] else np.zeros((0, 2))
-        uv_u = np.stack(
-            [self.camera.fx * xn[:, 0] + self.camera.cx, self.camera.fy * xn[:, 1] + self.camera.cy], -1
-        )
+        uv_u = np.stack([self.camera.fx * xn[:, 0] + self.camera.cx, self.camera.fy * xn[:, 1] + self.camera.cy], -1)
         return FrameFeatures(ts, self.ids.copy(), self.uv.copy(), xn, uv_u, flow, 0, 0)
 
     def current(self, ts):

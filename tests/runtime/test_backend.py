@@ -12,8 +12,9 @@ from runtime.backend.factors import (
     refine_pose,
     reprojection_residuals,
 )
-from runtime.backend.graph import BackendConfig, Keyframe, SlidingWindowBackend
 from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params
+from runtime.backend.state import Keyframe
+from runtime.backend.window import BackendConfig, SlidingWindowBackend
 from runtime.geometry import inv_T, make_T, pose_error, so3_exp, to_pose3
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, ImuNoise, Motion, make_imu, room_points
 
@@ -63,9 +64,7 @@ def _perturb(T, rng, rot=0.03, trans=0.05):
 def _build(sc, backend, n, rng, noise_px=0.0):
     backend.initialize(sc.kf(0))
     for i in range(1, n):
-        backend.add_keyframe(
-            sc.kf(i, _perturb(sc.T[i], rng), sc.v[i] + rng.normal(0, 0.1, 3)), sc.pim(i - 1, i)
-        )
+        backend.add_keyframe(sc.kf(i, _perturb(sc.T[i], rng), sc.v[i] + rng.normal(0, 0.1, 3)), sc.pim(i - 1, i))
     seen = {}
     for i in range(n):
         for j, uv in zip(*sc.obs[i], strict=False):
@@ -78,28 +77,26 @@ def _build(sc, backend, n, rng, noise_px=0.0):
 
 def test_backend_recovers_ground_truth_from_perturbed_values():
     sc = Scenario()
-    backend = SlidingWindowBackend(
-        EUROC_CAM.intrinsics, EUROC_T_BS, sc.params, BackendConfig(lm_max_iterations=20)
-    )
+    backend = SlidingWindowBackend(EUROC_CAM.intrinsics, EUROC_T_BS, sc.params, BackendConfig(lm_max_iterations=20))
     rng = np.random.default_rng(0)
     ids = _build(sc, backend, 6, rng)
-    before = max(pose_error(backend.keyframes[i].T_w_b, sc.T[i])[0] for i in range(6))
+    before = max(pose_error(backend.map.keyframes[i].T_w_b, sc.T[i])[0] for i in range(6))
     assert before > 0.03
     stats = backend.optimize()
     assert stats["ok"] and stats["error_after"] < 1e-3 * stats["error_before"]
     for i in range(6):
-        dp, dr = pose_error(backend.keyframes[i].T_w_b, sc.T[i])
+        dp, dr = pose_error(backend.map.keyframes[i].T_w_b, sc.T[i])
         assert dp < 2e-3 and np.degrees(dr) < 0.05, (i, dp, np.degrees(dr))
-        assert np.linalg.norm(backend.keyframes[i].v_w - sc.v[i]) < 5e-3
-    P, ok = backend.landmark_positions(np.array(ids))
+        assert np.linalg.norm(backend.map.keyframes[i].v_w - sc.v[i]) < 5e-3
+    P, ok = backend.map.landmark_positions(np.array(ids))
     assert ok.all() and np.median(np.linalg.norm(P - sc.pts[ids], axis=1)) < 2e-3
     drop, n_out = backend.remove_outliers()
     assert n_out == 0 and drop.size == 0
     assert backend.init_kf_id == 0  # the window's first keyframe; a reset forgets it, a new window names its own
-    backend._clear_window()
+    backend.clear_window()
     assert backend.init_kf_id is None
     backend.initialize(sc.kf(3))
-    assert backend.init_kf_id == 3 and backend.active == [3]
+    assert backend.init_kf_id == 3 and backend.map.active == [3]
 
 
 def test_outliers_are_removed_and_marginalisation_keeps_the_estimate():
@@ -117,12 +114,12 @@ def test_outliers_are_removed_and_marginalisation_keeps_the_estimate():
         if i == 3:
             uv[:5] += 40.0  # gross outliers
             bad = set(ids[:5].tolist())
-        known = np.array([j for j in ids if j in backend.landmarks])
+        known = np.array([j for j in ids if j in backend.map.landmarks])
         sel = np.isin(ids, known)
         backend.add_observations(i, ids[sel], uv[sel])
         for j, u in zip(ids[~sel], uv[~sel], strict=False):
             lm_obs.setdefault(int(j), {})[i] = u
-        new = [j for j, o in lm_obs.items() if len(o) >= 2 and j not in backend.landmarks][:80]
+        new = [j for j, o in lm_obs.items() if len(o) >= 2 and j not in backend.map.landmarks][:80]
         backend.add_landmarks(
             np.array(new, dtype=np.int64),
             sc.pts[new] + rng.normal(0, 0.05, (len(new), 3)),
@@ -134,14 +131,14 @@ def test_outliers_are_removed_and_marginalisation_keeps_the_estimate():
             assert set(drop.tolist()) & bad and n_out >= 3
             backend.optimize()
         backend.marginalize()
-        assert len(backend.active) <= 4
-    assert backend.anchors and backend.prior_factors
-    for i in backend.active:
-        dp, dr = pose_error(backend.keyframes[i].T_w_b, sc.T[i])
+        assert len(backend.map.active) <= 4
+    assert backend.map.anchors and backend.prior_factors
+    for i in backend.map.active:
+        dp, dr = pose_error(backend.map.keyframes[i].T_w_b, sc.T[i])
         assert dp < 0.01 and np.degrees(dr) < 0.2, (i, dp)
-    for i, (_, T) in backend.history.items():
+    for i, (_, T) in backend.map.history.items():
         assert pose_error(T, sc.T[i])[0] < 0.01
-    ids, P = backend.all_points()
+    ids, P = backend.map.all_points()
     assert np.median(np.linalg.norm(P - sc.pts[ids], axis=1)) < 0.05  # short baselines, 0.3 px noise
 
 
@@ -255,66 +252,38 @@ def _coasted_backend(n_kf=14, window=4, drift=0.4, seed=3, n_total=None):
 def test_coast_bridge_recovers_the_coasted_states_from_the_imu_links():
     sc, be = _coasted_backend()
     last = len(sc.t) - 1
-    assert sorted(be.archived_states) == list(range(last - 3))
-    assert be.active == list(range(last - 3, last + 1))
-    before = [pose_error(be.history[i][1], sc.T[i])[0] for i in range(len(sc.t))]
+    assert sorted(be.archive.states) == list(range(last - 3))
+    assert be.map.active == list(range(last - 3, last + 1))
+    before = [pose_error(be.map.history[i][1], sc.T[i])[0] for i in range(len(sc.t))]
     assert max(before) > 0.35
-    corr = be.bridge(
-        int(sc.t[2] * 1e9) + 1,
-        last,
-        sc.T[last],
-        np.array([1e-3, 1e-3]),
-        np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3]),
-    )
+    _set_bridge_sigmas(be, fix=(1e-3, 1e-3), anchor=(1e-3, 1e-3, 1e-2, 0.05, 2e-3))
+    corr = be.bridge(int(sc.t[2] * 1e9) + 1, last, sc.T[last])
     assert sorted(corr) == list(range(2, last + 1))  # from the anchor (the last keyframe before the loss)
     for i in range(len(sc.t)):
-        T = be.history[i][1]
+        T = be.map.history[i][1]
         assert pose_error(T, sc.T[i])[0] < 0.01, (i, pose_error(T, sc.T[i]))  # exact IMU: the path itself
-        state = be.keyframes[i] if i in be.active else be.archived_states[i]
+        state = be.map.keyframes[i] if i in be.map.active else be.archive.states[i]
         assert np.allclose(state.T_w_b, T)
         assert np.linalg.norm(state.v_w - sc.v[i]) < 0.03, i
     # the window's marginal prior now comes from the anchor over the archived links, at the bridged state
     assert all(isinstance(f, gtsam.LinearContainerFactor) for f in be.prior_factors)
     st = be.optimize()
     assert st["ok"]
-    for i in be.active:
-        assert pose_error(be.keyframes[i].T_w_b, sc.T[i])[0] < 0.01, i
-
-
-def test_coast_bridge_takes_the_providers_bridge_factors():
-    # a provider's bridge factor (here: a pose prior 5 cm off the truth on one coasted keyframe) joins the
-    # bridge; it sees the start values of exactly the bridged keyframes
-    sc, be = _coasted_backend()
-    last, mid = len(sc.t) - 1, 6
-    T_off = sc.T[mid].copy()
-    T_off[:3, 3] += [0.05, 0.0, 0.0]
-    seen = {}
-
-    class Provider:
-        def bridge_factors(self, backend, poses):
-            seen.update(poses)
-            return [gtsam.PriorFactorPose3(X(mid), to_pose3(T_off), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4))]
-
-    be.add_provider(Provider())
-    sig2, sig5 = np.array([1e-3, 1e-3]), np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3])
-    be.bridge(int(sc.t[2] * 1e9) + 1, last, sc.T[last], sig2, sig5)
-    assert sorted(seen) == list(range(2, last + 1))
-    assert np.allclose(seen[2], sc.T[2])  # the anchor starts where it was
-    assert pose_error(be.history[mid][1], T_off)[0] < 1e-3
-    assert 0.03 < pose_error(be.history[mid][1], sc.T[mid])[0] < 0.06
+    for i in be.map.active:
+        assert pose_error(be.map.keyframes[i].T_w_b, sc.T[i])[0] < 0.01, i
 
 
 def test_coast_bridge_declines_without_an_inertial_chain():
     sc, be = _coasted_backend()
     last = len(sc.t) - 1
-    sig2, sig5 = np.array([1e-3, 1e-3]), np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3])
+    _set_bridge_sigmas(be, fix=(1e-3, 1e-3), anchor=(1e-3, 1e-3, 1e-2, 0.05, 2e-3))
     # the archive does not reach back before the loss
-    assert be.bridge(-1, last, sc.T[last], sig2, sig5) is None
+    assert be.bridge(-1, last, sc.T[last]) is None
     gap = Keyframe(last + 1, int((sc.t[last] + 0.3) * 1e9), last + 1, sc.T[last], sc.v[last], np.zeros(6))
     be.add_keyframe(gap, None)  # an IMU gap: no inertial link
-    before = {k: T.copy() for k, (_, T) in be.history.items()}
-    assert be.bridge(int(sc.t[2] * 1e9) + 1, last + 1, sc.T[last], sig2, sig5) is None
-    assert all(np.array_equal(be.history[k][1], before[k]) for k in before)  # nothing moved
+    before = {k: T.copy() for k, (_, T) in be.map.history.items()}
+    assert be.bridge(int(sc.t[2] * 1e9) + 1, last + 1, sc.T[last]) is None
+    assert all(np.array_equal(be.map.history[k][1], before[k]) for k in before)  # nothing moved
 
 
 class _PosePriors:
@@ -325,7 +294,7 @@ class _PosePriors:
         self.sc, self.first = sc, first
 
     def add_factors(self, backend, graph, values):
-        for k in backend.active:
+        for k in backend.window_ids():
             if k >= self.first:
                 graph.push_back(
                     gtsam.PriorFactorPose3(X(k), to_pose3(self.sc.T[k]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4))
@@ -338,66 +307,62 @@ class _PosePriors:
         pass
 
 
-def _smoothed_coast_errors(smooth: bool):
+def _set_bridge_sigmas(be, fix, anchor):
+    c = be.cfg.coast
+    c.fix_rot_sigma, c.fix_pos_sigma = fix
+    c.anchor_rot_sigma, c.anchor_pos_sigma, c.anchor_vel_sigma, c.anchor_acc_bias_sigma = anchor[:4]
+    c.anchor_gyro_bias_sigma = anchor[4]
+
+
+def _smoothed_coast_errors():
     """Coast, bridge with a wrong accelerometer bias in the anchor prior, then five tracked keyframes."""
     n_coast, n_after, window = 14, 5, 4
     sc, be = _coasted_backend(n_kf=n_coast, window=window, n_total=n_coast + n_after)
-    be.cfg.smooth_coast = smooth
     last = n_coast - 1
-    be.archived_states[2].bias[:3] += [0.06, -0.04, 0.03]  # what the window believed at the loss
-    be.bridge(
-        int(sc.t[2] * 1e9) + 1,
-        last,
-        sc.T[last],
-        np.array([1e-3, 1e-3]),
-        np.array([1e-3, 1e-3, 0.05, 0.05, 2e-3]),
-        anchor_marginal=False,
-    )
+    be.archive.states[2].bias[:3] += [0.06, -0.04, 0.03]  # what the window believed at the loss
+    del be.archive.priors[2]  # the anchor prior is then the configured sigmas around that state
+    _set_bridge_sigmas(be, fix=(1e-3, 1e-3), anchor=(1e-3, 1e-3, 0.05, 0.05, 2e-3))
+    be.bridge(int(sc.t[2] * 1e9) + 1, last, sc.T[last])
     coast = range(3, last)
-    after_bridge = max(pose_error(be.history[i][1], sc.T[i])[0] for i in coast)
+    after_bridge = max(pose_error(be.map.history[i][1], sc.T[i])[0] for i in coast)
     be.add_provider(_PosePriors(sc, n_coast))
     in_smoother = []
     for i in range(n_coast, n_coast + n_after):
         be.add_keyframe(sc.kf(i), sc.pim(i - 1, i))
         in_smoother.append(be.optimize().get("coast_keyframes", 0))
         be.marginalize()
-    final = max(pose_error(be.history[i][1], sc.T[i])[0] for i in coast)
+    final = max(pose_error(be.map.history[i][1], sc.T[i])[0] for i in coast)
     return after_bridge, final, in_smoother, be
 
 
 def test_the_bridged_coast_stays_in_the_smoother_until_the_relocalised_keyframe_leaves():
-    after_bridge, final, in_smoother, be = _smoothed_coast_errors(smooth=True)
+    after_bridge, final, in_smoother, be = _smoothed_coast_errors()
     assert after_bridge > 0.02  # the PnP pose alone cannot tell the bias error from a velocity error
     assert final < 0.2 * after_bridge and final < 5e-3, (after_bridge, final)
     # the coast (anchor 2 up to the oldest active keyframe) is in every optimisation while the relocalised
     # keyframe 13 is in the window, then leaves with it
     assert in_smoother == [8, 9, 10, 11, 0], in_smoother
-    assert be.coast is None
-    # without: the archived coast keeps the bridge's estimate
-    after_bridge_off, final_off, in_smoother_off, _ = _smoothed_coast_errors(smooth=False)
-    assert in_smoother_off == [0] * 5
-    assert abs(final_off - after_bridge_off) < 0.2 * after_bridge_off
+    assert be.archive.coast is None
 
 
 def test_the_coast_anchor_prior_is_what_the_window_knew_when_the_anchor_left():
     sc, be = _coasted_backend()
     last = len(sc.t) - 1
     # every marginalised keyframe keeps the prior it was marginalised with: factors on its own X, V, B only
-    assert sorted(be.archived_priors) == sorted(be.archived_states)
-    for k, facs in be.archived_priors.items():
+    assert sorted(be.archive.priors) == sorted(be.archive.states)
+    for k, facs in be.archive.priors.items():
         keys = {key for f in facs for key in f.keys()}
         assert keys <= {X(k), gtsam.symbol("v", k), gtsam.symbol("b", k)} and X(k) in keys, k
-    corr = be.bridge(
-        int(sc.t[2] * 1e9) + 1, last, sc.T[last], np.array([1e-3, 1e-3]), np.array([1e-3, 1e-3, 1e-2, 0.05, 2e-3])
-    )
-    assert corr is not None and be.coast.anchor == 2 and be.coast.until == last
-    assert be.coast.anchor_priors is be.archived_priors[2]
+    _set_bridge_sigmas(be, fix=(1e-3, 1e-3), anchor=(1e-3, 1e-3, 1e-2, 0.05, 2e-3))
+    corr = be.bridge(int(sc.t[2] * 1e9) + 1, last, sc.T[last])
+    assert corr is not None and be.archive.coast.anchor == 2 and be.archive.coast.until == last
+    assert be.archive.coast.anchor_priors is be.archive.priors[2]
     for i in range(len(sc.t)):
-        assert pose_error(be.history[i][1], sc.T[i])[0] < 0.01, i
+        assert pose_error(be.map.history[i][1], sc.T[i])[0] < 0.01, i
     # the archive forgets the priors with the states
-    be.cfg.archive_s = 1.5
+    be.cfg.coast.archive_s = 1.5
     t_next = int((sc.t[last] + 0.3) * 1e9)
     be.add_keyframe(Keyframe(last + 1, t_next, last + 1, sc.T[last], sc.v[last], np.zeros(6)), None)
     be.marginalize()
-    assert sorted(be.archived_priors) == sorted(be.archived_states)
-    assert min(be.archived_states) > 2
+    assert sorted(be.archive.priors) == sorted(be.archive.states)
+    assert min(be.archive.states) > 2

@@ -108,9 +108,7 @@ def test_klt_recovers_known_shift_and_rejects_unrelated_image():
     trk.track(0, img)
     f0 = trk.replenish(0, img)
     shift = np.array([3.4, -2.2])
-    img2 = cv2.warpAffine(
-        img, np.array([[1, 0, shift[0]], [0, 1, shift[1]]]), (752, 480), flags=cv2.INTER_LINEAR
-    )
+    img2 = cv2.warpAffine(img, np.array([[1, 0, shift[0]], [0, 1, shift[1]]]), (752, 480), flags=cv2.INTER_LINEAR)
     f1 = trk.track(1, img2)
     common, i0, i1 = np.intersect1d(f0.ids, f1.ids, return_indices=True)
     assert len(common) > 0.8 * len(f0.ids)

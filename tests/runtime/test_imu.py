@@ -60,9 +60,7 @@ def test_segment_zero_order_hold_pieces():
     ts = np.array([0, 5, 10, 15, 20], dtype=np.int64) * 1_000_000
     gyro = np.arange(15, dtype=float).reshape(5, 3)
     imu = ImuStream(ts, gyro, gyro + 100, 200.0)
-    g, a, dt = imu.segment(
-        7_000_000, 16_000_000
-    )  # [7, 10) uses sample 1, [10, 15) sample 2, [15, 16) sample 3
+    g, a, dt = imu.segment(7_000_000, 16_000_000)  # [7, 10) uses sample 1, [10, 15) sample 2, [15, 16) sample 3
     assert np.allclose(dt, [0.003, 0.005, 0.001])
     assert np.allclose(g[:, 0], [3, 6, 9])
     assert np.allclose(a[:, 0], [103, 106, 109])

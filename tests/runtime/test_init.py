@@ -61,9 +61,7 @@ def test_moving_start_is_reported_clearly(caplog):
     t = ts * 1e-9
     gyro = np.stack([0.5 * np.sin(3 * t), 0.3 * np.cos(2 * t), 0.2 * np.ones_like(t)], 1)
     acc = (
-        np.array([0, 0, 9.81])
-        + np.stack([2 * np.sin(4 * t), np.cos(5 * t), 0 * t], 1)
-        + rng.normal(0, 0.03, (400, 3))
+        np.array([0, 0, 9.81]) + np.stack([2 * np.sin(4 * t), np.cos(5 * t), 0 * t], 1) + rng.normal(0, 0.03, (400, 3))
     )
     init = StaticInitializer()
     with caplog.at_level(logging.WARNING):

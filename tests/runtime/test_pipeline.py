@@ -7,13 +7,15 @@ import gtsam
 import numpy as np
 import pytest
 
+from apps.evaluate import main as eval_main
+from apps.slam import main as slam_main
 from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params
-from runtime.cli import eval_main, slam_main
 from runtime.geometry import pose_error
 from runtime.io.euroc import read_euroc
 from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
-from runtime.slam import SlamConfig, run_sequence
+from runtime.run import run_sequence
+from runtime.slam import SlamConfig
 
 sim_euroc = pytest.importorskip("sim.euroc")
 
@@ -159,7 +161,5 @@ def test_cli_errors_are_clear(tiny, tmp_path, capsys):
 
 def test_rerun_recording(tiny, tmp_path):
     pytest.importorskip("rerun")
-    m = run_sequence(
-        read_euroc(tiny), tmp_path / "rr", progress=False, max_frames=80, viz="rerun", plot=False
-    )
+    m = run_sequence(read_euroc(tiny), tmp_path / "rr", progress=False, max_frames=80, viz="rerun", plot=False)
     assert (tmp_path / "rr" / "slam.rrd").stat().st_size > 10_000 and m["frames"] == 80

@@ -16,9 +16,7 @@ T0 = 10**9
 IMG = np.zeros((480, 752), np.uint8)
 
 
-def run(
-    duration, motion=None, imu_noise=True, nan_rows=(), gap=None, blank=None, no_image=(), cfg=None, seed=0
-):
+def run(duration, motion=None, imu_noise=True, nan_rows=(), gap=None, blank=None, no_image=(), cfg=None, seed=0):
     m = motion or Motion(seed=seed)
     ts, g, a = make_imu(m, duration + 0.2, noise=ImuNoise() if imu_noise else None, seed=seed, t0_ns=T0)
     for k in nan_rows:
@@ -48,8 +46,8 @@ def test_pipeline_on_a_10s_sequence_reaches_a_bounded_ate():
     assert met["ate_se3_rmse_m"] < 0.02, met
     assert met["path_length_m"] > 3.0
     assert abs(met["sim3_scale"] - 1) < 0.02  # metric scale from the IMU
-    assert len(system.backend.history) > 15
-    ids, P = system.backend.all_points()
+    assert len(system.map.history) > 15
+    ids, P = system.map.all_points()
     assert len(ids) > 200
     assert system.records[0].ts - T0 < 2.0e9  # initialised within the 1.5 s rest + 0.5 s
     assert all(r.status in ("tracking", "still") for r in system.records)
@@ -61,9 +59,7 @@ def test_still_camera_gives_a_still_trajectory():
     assert len(ts) > 90
     drift = np.linalg.norm(T[:, :3, 3] - T[0, :3, 3], axis=1).max()
     assert drift < 5e-3, drift
-    rot = max(
-        np.degrees(np.arccos(np.clip((np.trace(T[0, :3, :3].T @ Ti[:3, :3]) - 1) / 2, -1, 1))) for Ti in T
-    )
+    rot = max(np.degrees(np.arccos(np.clip((np.trace(T[0, :3, :3].T @ Ti[:3, :3]) - 1) / 2, -1, 1))) for Ti in T)
     assert rot < 0.2
 
 
@@ -106,9 +102,7 @@ def test_missing_images_give_imu_poses_and_are_logged():
 
 
 def test_config_from_dict_checks_keys_and_types():
-    c = SlamConfig.from_dict(
-        {"backend": {"window_size": 7}, "features": {"detector": "fast"}, "refine_iterations": 3}
-    )
+    c = SlamConfig.from_dict({"backend": {"window_size": 7}, "features": {"detector": "fast"}, "refine_iterations": 3})
     assert c.backend.window_size == 7 and c.features.detector == "fast" and c.refine_iterations == 3
     with pytest.raises(ValueError, match="runtime.backend.windowsize"):
         SlamConfig.from_dict({"backend": {"windowsize": 7}})
@@ -119,7 +113,7 @@ def test_config_from_dict_checks_keys_and_types():
 
 
 def test_runtime_does_not_import_torch():
-    code = "import sys, runtime.slam, runtime.cli, runtime.eval; assert 'torch' not in sys.modules, 'torch!'"
+    code = "import sys, runtime.slam, runtime.run, runtime.eval, apps.slam; assert 'torch' not in sys.modules, 'torch!'"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -128,18 +122,26 @@ def test_runtime_presets_match_the_typed_config():
     from pathlib import Path
 
     import yaml
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
-    conf = Path(__file__).resolve().parents[2] / "conf" / "runtime"
-    d = yaml.safe_load((conf / "default.yaml").read_text())
-    assert dataclasses.asdict(SlamConfig.from_dict(d)) == dataclasses.asdict(SlamConfig())  # same values
-    assert set(d) == set(dataclasses.asdict(SlamConfig()))  # and every key spelled out
+    from runtime.presets import presets
 
-    def keys(x, path=""):
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    text = (conf / "slam" / "runtime" / "default.yaml").read_text()
+    assert text == presets()["runtime/default.yaml"]  # generated from the dataclasses, every key
+    d = yaml.safe_load(text)
+    assert dataclasses.asdict(SlamConfig.from_dict(d)) == dataclasses.asdict(SlamConfig())
+
+    def flat(x, path=""):
         if not isinstance(x, dict):
-            return {path}
-        return {k for name, v in x.items() for k in keys(v, f"{path}.{name}")}
+            return {path: x}
+        return {k: v for name, sub in x.items() for k, v in flat(sub, f"{path}.{name}").items()}
 
-    assert keys(d) == keys(dataclasses.asdict(SlamConfig()))  # nested sections too
-    fast = yaml.safe_load((conf / "fast.yaml").read_text())
-    assert keys(fast) == keys(d)  # presets share the keys
-    SlamConfig.from_dict(fast)
+    fast = yaml.safe_load((conf / "slam" / "runtime" / "fast.yaml").read_text())
+    assert fast.pop("defaults") == ["default", "_self_"]  # the fast preset states only what differs
+    changed = flat(fast)
+    assert set(changed) < set(flat(d)) and all(flat(d)[k] != v for k, v in changed.items())
+    with initialize_config_dir(config_dir=str(conf / "slam"), version_base=None):
+        composed = OmegaConf.to_container(compose("slam", overrides=["runtime=fast"]).runtime)
+    assert flat(dataclasses.asdict(SlamConfig.from_dict(composed))) == {**flat(d), **changed}

@@ -1,55 +1,15 @@
-"""Map-point descriptors and relocalisation (re-finding old map points after visual tracking was lost).
-
-KLT tracks die when the view is lost (a white wall); the map points seen before are then unreachable for the
-tracker, and the estimate drifts with the IMU. Each landmark gets an ORB descriptor when it is triangulated
-(in
-its keyframe image); after tracking resumes, the new keyframe's features are described and matched against the
-map points the estimated camera could see (generous frustum: the estimate may be off by a metre), and a RANSAC
-PnP on the matches gives the camera pose in the map. The system then corrects its window and re-activates the
-matched map points (see ``SlamSystem._relocalize``).
-"""
+"""Map-point descriptors and matching: ORB descriptors per landmark, mutual-best and guided matching, the
+candidate map points in view, and RANSAC PnP (used by :mod:`runtime.reloc.relocalizer`)."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from runtime.geometry import project_pinhole
+
 # popcount of a byte, for Hamming distances in numpy
 _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-
-
-@dataclass
-class RelocConfig:
-    """Map re-use: relocalisation after a loss of visual tracking, and guided re-finding of map points."""
-
-    enabled: bool = True
-    min_lost_s: float = 1.0  # only after losses at least this long (shorter ones are bridged by the IMU)
-    max_attempts: int = 30  # keyframes to try after tracking resumed
-    max_hamming: int = 60  # descriptor distance bound (of 256 bits)
-    ratio: float = 0.85  # Lowe's ratio test between the best and second-best candidate
-    frustum_margin: float = 0.6  # candidate map points may project this fraction of the image size outside it
-    max_depth: float = 12.0  # m, candidate map points farther than this are ignored
-    min_inliers: int = 15  # PnP inliers to accept a relocalisation
-    min_inlier_ratio: float = 0.3
-    pnp_reproj_px: float = 2.5  # RANSAC threshold
-    map_point_sigma: float = 0.02  # m, prior on a re-activated map point
-    min_correction_m: float = 0.0  # corrections smaller than this are not applied (0: always)
-    drift_exponent: float = 2.0  # share of the correction given to coasted keyframes: (elapsed fraction)^this
-    bridge: bool = True  # re-estimate the coast over its IMU links between the fixes (else: spread)
-    bridge_fix_rot_sigma: float = 0.01  # rad, the PnP pose of the relocalised keyframe
-    bridge_fix_pos_sigma: float = 0.03  # m
-    bridge_anchor_rot_sigma: float = 0.005  # rad, the last visually tracked keyframe before the loss
-    bridge_anchor_lead_s: float = 0.0  # s, the anchor is the last keyframe this long before the loss
-    bridge_anchor_pos_sigma: float = 0.01  # m
-    bridge_anchor_vel_sigma: float = 0.05  # m/s
-    bridge_anchor_acc_bias_sigma: float = 0.05  # m/s^2
-    bridge_anchor_gyro_bias_sigma: float = 0.002  # rad/s
-    bridge_anchor_marginal: bool = True  # anchor prior: the window's marginal when it left (else the sigmas above)
-    guided: bool = True  # at every keyframe, re-find map points near their predicted projection
-    guided_radius_px: float = 12.0
-    guided_max_hamming: int = 50
 
 
 class MapDescriptors:
@@ -165,18 +125,26 @@ def candidates_in_view(
     if X_w.shape[0] == 0:
         return np.zeros(0, bool)
     T_c_w = np.linalg.inv(T_w_c)
-    p = X_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
-    z = p[:, 2]
-    zs = np.where(z > 1e-6, z, 1.0)
-    u = K[0, 0] * p[:, 0] / zs + K[0, 2]
-    v = K[1, 1] * p[:, 1] / zs + K[1, 2]
+    (u, v), z = _project(K, X_w @ T_c_w[:3, :3].T + T_c_w[:3, 3])
     mw, mh = margin * width, margin * height
     return (z > 0.1) & (z < max_depth) & (u > -mw) & (u < width + mw) & (v > -mh) & (v < height + mh)
 
 
-def pnp(
-    X_w: np.ndarray, xn: np.ndarray, reproj_norm: float, seed: int = 0
-) -> tuple[np.ndarray | None, np.ndarray]:
+def in_view(T_c_w: np.ndarray, X_w: np.ndarray, K, width: int, height: int, max_depth: float):
+    """Pixels (N, 2) of world points (N, 3) in a camera at ``T_c_w`` and a mask of those in front of it (0.1 m
+    to ``max_depth``) and inside its image."""
+    (u, v), z = _project(K, X_w @ T_c_w[:3, :3].T + T_c_w[:3, 3])
+    ok = (z > 0.1) & (z < max_depth) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return np.stack([u, v], -1), ok
+
+
+def _project(K, p_c: np.ndarray):
+    """``((u, v), z)`` of camera-frame points for the view tests (a point behind the camera is masked by z)."""
+    uv, z = project_pinhole((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), p_c, min_abs_depth=1e-6)
+    return (uv[:, 0], uv[:, 1]), z
+
+
+def pnp(X_w: np.ndarray, xn: np.ndarray, reproj_norm: float, seed: int = 0) -> tuple[np.ndarray | None, np.ndarray]:
     """RANSAC PnP on normalised image coordinates (N, 2) of world points (N, 3).
 
     Returns:
@@ -201,9 +169,7 @@ def pnp(
         return None, inl
     inl[idx.reshape(-1)] = True
     # refine on the inliers
-    ok, rvec, tvec = cv2.solvePnP(
-        X_w[inl], xn[inl], np.eye(3), None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE
-    )
+    ok, rvec, tvec = cv2.solvePnP(X_w[inl], xn[inl], np.eye(3), None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
     R, _ = cv2.Rodrigues(rvec)
     T_c_w = np.eye(4)
     T_c_w[:3, :3] = R

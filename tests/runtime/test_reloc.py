@@ -3,9 +3,10 @@
 import cv2
 import numpy as np
 
-from runtime.backend.graph import BackendConfig, Keyframe, SlidingWindowBackend
-from runtime.frontend.mapdb import MapDescriptors, candidates_in_view, guided_match, hamming, match, pnp
+from runtime.backend.state import Keyframe
+from runtime.backend.window import BackendConfig, SlidingWindowBackend
 from runtime.geometry import inv_T, make_T, pose_error, so3_exp
+from runtime.reloc.descriptors import MapDescriptors, candidates_in_view, guided_match, hamming, match, pnp
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, ImuNoise
 
 
@@ -92,11 +93,11 @@ def test_correction_and_reactivated_map_points_pull_the_window_onto_the_map():
     uv = Xc[:, :2] / Xc[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
     C = inv_T(drift)
     be.apply_correction(lambda ts: C, t_from=int(0.05e9))  # keyframe 1 only
-    assert pose_error(be.keyframes[1].T_w_b, T0)[0] < 1e-9
-    assert pose_error(be.keyframes[0].T_w_b, T0)[0] < 1e-9  # before t_from: untouched
+    assert pose_error(be.map.keyframes[1].T_w_b, T0)[0] < 1e-9
+    assert pose_error(be.map.keyframes[0].T_w_b, T0)[0] < 1e-9  # before t_from: untouched
     be.reactivate_landmarks(np.arange(100, 140), Xw, 1, uv, sigma=0.01)
-    assert all(be.landmarks[j].map_prior is not None for j in range(100, 140))
+    assert all(be.map.landmarks[j].map_prior is not None for j in range(100, 140))
     # perturb keyframe 1 again: the map points (one view each, held by their priors) bring it back
-    be.keyframes[1].T_w_b = make_T(so3_exp(np.array([0.0, 0.01, 0.0])), [0.05, 0.0, 0.02]) @ T0
+    be.map.keyframes[1].T_w_b = make_T(so3_exp(np.array([0.0, 0.01, 0.0])), [0.05, 0.0, 0.02]) @ T0
     stats = be.optimize()
-    assert stats["ok"] and pose_error(be.keyframes[1].T_w_b, T0)[0] < 0.005
+    assert stats["ok"] and pose_error(be.map.keyframes[1].T_w_b, T0)[0] < 0.005

@@ -1,0 +1,178 @@
+"""Relocalisation against the map after a loss of visual tracking, and guided re-finding of map points.
+
+KLT tracks die when the view is lost (a white wall); the map points seen before are then unreachable for the
+tracker, and the estimate drifts with the IMU. Each landmark gets an ORB descriptor when it is triangulated (in
+its keyframe image). After tracking resumes, a new keyframe's features are described and matched against the
+map points the estimated camera could see (generous frustum: the estimate may be off by a metre), and a RANSAC
+PnP on the matches gives the camera pose in the map (:meth:`Relocalizer.relocalize`). The coasted keyframes
+are then re-estimated over their IMU links between the last visual fix before the loss and the PnP pose (the
+backend's coast bridge, :mod:`runtime.backend.coast`); when no inertial chain is left (an IMU gap, a loss longer
+than the archive), a 4-DoF correction (yaw and translation: roll and pitch are observable from gravity) is
+spread over the coast instead. The matched map points re-enter the window.
+
+At every other keyframe, old map points are re-found among the keyframe's new tracks near their predicted
+projections (:meth:`Relocalizer.guided_match`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from runtime.geometry import inv_T
+from runtime.reloc.descriptors import MapDescriptors, candidates_in_view, guided_match, in_view, match, pnp
+
+
+@dataclass
+class RelocConfig:
+    """Map re-use: relocalisation after a loss of visual tracking, and guided re-finding of map points."""
+
+    enabled: bool = True
+    min_lost_s: float = 1.0  # only after losses at least this long (shorter ones are bridged by the IMU)
+    max_attempts: int = 30  # keyframes to try after tracking resumed
+    max_hamming: int = 60  # descriptor distance bound (of 256 bits)
+    ratio: float = 0.85  # Lowe's ratio test between the best and second-best candidate
+    frustum_margin: float = 0.6  # candidate map points may project this fraction of the image size outside it
+    max_depth: float = 12.0  # m, candidate map points farther than this are ignored
+    min_inliers: int = 15  # PnP inliers to accept a relocalisation
+    min_inlier_ratio: float = 0.3
+    pnp_reproj_px: float = 2.5  # RANSAC threshold
+    map_point_sigma: float = 0.02  # m, prior on a re-activated map point
+    min_correction_m: float = 0.0  # corrections smaller than this are not applied (0: always)
+    drift_exponent: float = 2.0  # share of a spread correction given to coasted keyframes: (elapsed fraction)^this
+    guided: bool = True  # at every keyframe, re-find map points near their predicted projection
+    guided_radius_px: float = 12.0
+    guided_max_hamming: int = 50
+
+
+@dataclass
+class Relocalization:
+    """A successful relocalisation: what the system applies and reports."""
+
+    T_corr: np.ndarray  # (4, 4) world-frame correction of the relocalised keyframe (applies to the current pose)
+    track_ids: np.ndarray  # tracks that now carry map-point ids (renamed)
+    n_inliers: int
+    n_matches: int
+    drift_m: float
+    yaw_deg: float
+    bridged: bool  # the coast was re-estimated over its IMU links (else the correction was spread)
+
+
+class Relocalizer:
+    """Descriptors of the map points and the matching against them.
+
+    Args:
+        cfg: settings.
+        camera: raw cam0 model (its pinhole intrinsics and size are used).
+        T_b_c: (4, 4) cam0-to-body.
+        backend: the :class:`runtime.backend.window.SlidingWindowBackend` (its map and the coast bridge).
+        tracker: the feature tracker (``current``, ``rename``).
+    """
+
+    def __init__(self, cfg: RelocConfig, camera, T_b_c: np.ndarray, backend, tracker) -> None:
+        self.cfg = cfg
+        self.camera = camera
+        self.K = camera.pinhole().K
+        self.T_b_c = np.asarray(T_b_c, np.float64)
+        self.T_c_b = inv_T(self.T_b_c)
+        self.backend = backend
+        self.tracker = tracker
+        self.descriptors = MapDescriptors()
+
+    def describe(self, image: np.ndarray, lm_ids: np.ndarray) -> None:
+        """Give new landmarks (tracks of the current frame) their descriptors in ``image``."""
+        cur = self.tracker.current(0)
+        _, ia, ib = np.intersect1d(lm_ids, cur.ids, assume_unique=True, return_indices=True)
+        desc, ok = self.descriptors.describe(image, cur.uv[ib])
+        self.descriptors.add(lm_ids[ia], desc, ok)
+
+    def relocalize(self, kf, image: np.ndarray, lost_since: int, regained: int) -> Relocalization | None:
+        """Match keyframe ``kf``'s features with the map points; on a PnP fix, correct the drift (the coast
+        bridge, or a spread 4-DoF correction) and bring the matched map points back into the window."""
+        c = self.cfg
+        map_ids, Xm = self.backend.map.map_point_arrays()
+        if map_ids.size < c.min_inliers:
+            return None
+        view = candidates_in_view(
+            kf.T_w_b @ self.T_b_c, Xm, self.K, self.camera.width, self.camera.height, c.frustum_margin, c.max_depth
+        )
+        dm, okm = self.descriptors.get(map_ids[view])
+        ids_c, X_c, dm = map_ids[view][okm], Xm[view][okm], dm[okm]
+        feats = self.tracker.current(kf.ts)
+        df, okf = self.descriptors.describe(image, feats.uv)
+        f_idx = np.nonzero(okf)[0]
+        qi, ti = match(df[f_idx], dm, c.max_hamming, c.ratio)
+        if qi.size < c.min_inliers:
+            return None
+        fi = f_idx[qi]
+        T_w_c, inl = pnp(X_c[ti], feats.xn[fi], c.pnp_reproj_px / self.camera.fx)
+        n_in = int(inl.sum())
+        if T_w_c is None or n_in < c.min_inliers or n_in < c.min_inlier_ratio * qi.size:
+            return None
+        T_new = T_w_c @ self.T_c_b
+        dR = T_new[:3, :3] @ kf.T_w_b[:3, :3].T
+        yaw = float(np.arctan2(dR[1, 0], dR[0, 0]))
+        shift = float(np.linalg.norm(T_new[:3, 3] - kf.T_w_b[:3, 3]))
+        T_corr, bridged = np.eye(4), False
+        if shift >= c.min_correction_m:
+            T_corr, bridged = self._correct(kf, T_new, yaw, lost_since, regained)
+        m_ids, t_ids = ids_c[ti][inl], feats.ids[fi][inl]
+        for j in t_ids:
+            if self.backend.map.is_landmark(j):
+                self.backend.map.delete_landmark(int(j))
+        self.tracker.rename(t_ids, m_ids)
+        self.backend.reactivate_landmarks(m_ids, X_c[ti][inl], kf.kf_id, feats.uv_u[fi][inl], c.map_point_sigma)
+        return Relocalization(T_corr, t_ids, n_in, int(qi.size), shift, float(np.degrees(yaw)), bridged)
+
+    def _correct(self, kf, T_new: np.ndarray, yaw: float, t0: int, t1: int) -> tuple[np.ndarray, bool]:
+        """Re-estimate the coast from ``t0`` (the loss) to ``kf`` (PnP pose ``T_new``) over its IMU links, or,
+        without an inertial chain, spread a 4-DoF correction: keyframes since the loss get the fraction
+        ``((t - t0) / (t1 - t0)) ** drift_exponent`` of it (the dead-reckoning error starts flat and grows
+        about quadratically), those after tracking resumed at ``t1`` the whole of it. Returns the correction
+        of ``kf`` and whether the coast was bridged."""
+        c = self.cfg
+
+        def correction(ts: int) -> np.ndarray:
+            a = float(np.clip((ts - t0) / max(t1 - t0, 1), 0.0, 1.0)) ** c.drift_exponent
+            ca, sa = np.cos(a * yaw), np.sin(a * yaw)
+            C = np.eye(4)
+            C[:3, :3] = [[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]]
+            # rotate about the keyframe's position so that a partial correction does not swing far points
+            C[:3, 3] = a * (T_new[:3, 3] - kf.T_w_b[:3, 3]) + kf.T_w_b[:3, 3] - C[:3, :3] @ kf.T_w_b[:3, 3]
+            return C
+
+        corr = self.backend.bridge(t0, kf.kf_id, T_new, init=correction)
+        if corr is not None:
+            return corr[kf.kf_id], True
+        self.backend.apply_correction(correction, t0)
+        return correction(kf.ts), False  # about the keyframe's corrected position
+
+    def guided_match(self, kf, image: np.ndarray) -> np.ndarray:
+        """Re-find old map points among the keyframe's tracks that are not landmarks yet (small search radius
+        around the predicted projections, descriptor check); matched tracks take the map point's id. Returns
+        the renamed track ids."""
+        c = self.cfg
+        none = np.zeros(0, np.int64)
+        ids, Xm = self.backend.map.map_point_arrays()
+        if ids.size == 0:
+            return none
+        uv, view = in_view(inv_T(kf.T_w_b @ self.T_b_c), Xm, self.K, self.camera.width, self.camera.height, c.max_depth)
+        if not view.any():
+            return none
+        dm, okm = self.descriptors.get(ids[view])
+        ids_c, X_c, uv_c, dm = ids[view][okm], Xm[view][okm], uv[view][okm], dm[okm]
+        feats = self.tracker.current(kf.ts)
+        free = np.array([not self.backend.map.is_landmark(j) for j in feats.ids], dtype=bool)
+        if not free.any() or ids_c.size == 0:
+            return none
+        fidx = np.nonzero(free)[0]
+        df, okf = self.descriptors.describe(image, feats.uv[fidx])
+        fidx = fidx[okf]
+        mi, fi = guided_match(uv_c, dm, feats.uv_u[fidx], df[okf], c.guided_radius_px, c.guided_max_hamming, c.ratio)
+        if mi.size == 0:
+            return none
+        t_ids, m_ids = feats.ids[fidx[fi]], ids_c[mi]
+        self.tracker.rename(t_ids, m_ids)
+        self.backend.reactivate_landmarks(m_ids, X_c[mi], kf.kf_id, feats.uv_u[fidx[fi]], c.map_point_sigma)
+        return t_ids

@@ -1,0 +1,210 @@
+"""Run the SLAM system over a whole sequence: prefetched images, the per-frame loop, and the outputs.
+
+Outputs in ``out_dir``: ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initialisation; see
+:meth:`runtime.slam.SlamSystem.trajectory`), ``keyframes.txt``, ``sparse_map.ply``, ``metrics.json``,
+``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``. With a dense configuration
+(:mod:`runtime.dense`) also ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import deque
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from runtime.backend.imu import ImuStream
+from runtime.geometry import ns_to_s
+from runtime.slam import SlamConfig, SlamSystem
+
+log = logging.getLogger(__name__)
+
+
+def run_sequence(
+    seq,
+    out_dir: str | Path,
+    cfg: SlamConfig | None = None,
+    progress: bool = True,
+    max_frames: int | None = None,
+    viz: str | None = None,
+    plot: bool = True,
+    dense=None,
+    model_dir: str | Path | None = None,
+) -> dict:
+    """Run the system over an io ``EurocSequence`` and write every output into ``out_dir``.
+
+    ``dense``: a :class:`runtime.dense.DenseConfig` runs the tightly coupled dense system with the network in
+    ``model_dir`` (default: the shipped model) and also writes ``dense_map.ply``, ``keyframe_depth/`` and the
+    dense metrics (depth metrics of the sparse points, the c = 0 prior and the optimised codes when the
+    sequence has ``mav0/depth0``); None: the sparse system.
+
+    Returns:
+        The metrics dictionary also written to ``metrics.json``.
+    """
+    cfg = cfg or SlamConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    imu = ImuStream.from_sequence(seq, cfg.imu.gap_factor)
+    mapper = _make_mapper(seq, dense, model_dir) if dense is not None else None
+    system = SlamSystem(seq.camera, seq.T_b_c, imu, seq.imu, cfg, dense=mapper)
+    recorder = None
+    if viz == "rerun":
+        from runtime.viz import RerunRecorder
+
+        recorder = RerunRecorder(out / "slam.rrd", seq.camera, seq.T_b_c)
+    elif viz not in (None, "", "none"):
+        raise ValueError(f"viz={viz!r} is not 'rerun' or 'none'")
+    n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    _run_frames(system, seq, n, recorder, progress)
+    wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
+    ts, T, pts = _write_trajectory_and_map(system, out)
+    metrics = {
+        "sequence": str(getattr(seq, "root", "")),
+        "frames": int(n),
+        "frames_with_pose": int(len(ts)),
+        "keyframes": int(len(system.map.history)),
+        "map_points": int(pts.shape[0]),
+        "wall_s": wall,
+        "fps": n / wall if wall > 0 else float("nan"),
+        "cpu_s": cpu,  # CPU time of the process (all threads): robust to other jobs sharing the machine
+        "cpu_ms_per_frame": 1e3 * cpu / max(n, 1),
+        "timing_ms_per_frame": system.timing_summary(),
+        "keyframe_reasons": dict(system.kf_reasons),
+        "map_points_refound": system.n_map_matches,
+        "initialised_at_s": (ns_to_s(ts[0]) if len(ts) else None),
+        "events": system.events[:200],
+        "n_events": len(system.events),
+        "relocalisations": system.relocalisations,
+        "config": _jsonable(asdict(cfg)),
+    }
+    if mapper is not None:
+        t0 = time.perf_counter()
+        metrics.update(mapper.finish(system.backend, out))
+        tm = system.timing_summary()
+        metrics["timing_dense_ms_per_frame"] = {
+            "network": tm.get("dense_network", 0.0),
+            "factor_building": tm.get("dense_factors", 0.0),
+            "optimisation": tm.get("optimize", 0.0) - tm.get("dense_factors", 0.0),
+            "outputs_s": time.perf_counter() - t0,
+        }
+    if len(ts) == 0:
+        metrics["error"] = "never initialised (no still period found; see events)"
+        log.error("never initialised: no trajectory; see the events in metrics.json")
+    metrics.update(_evaluate(seq, ts, T, out, plot))
+    if recorder is not None:
+        recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
+        recorder.close()
+    (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=2))
+    return metrics
+
+
+def _make_mapper(seq, dense, model_dir):
+    """The dense mapper of configuration ``dense`` with the network in ``model_dir`` (None: the shipped one)."""
+    from runtime.dense import DenseMapper
+    from runtime.network import DepthNetwork, default_model_dir
+
+    net = DepthNetwork(model_dir if model_dir is not None else default_model_dir())
+    depth_gt = seq.depth if getattr(seq, "has_depth", False) else None
+    return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt)
+
+
+def _run_frames(system: SlamSystem, seq, n: int, recorder, progress: bool) -> None:
+    """Feed the first ``n`` frames (images decoded ahead in a thread) to ``system``."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n, unit="frame", desc="dit-slam", dynamic_ncols=True)
+    for i, img, err, t_wait in _prefetched_images(seq, n):
+        ts = int(seq.frame_ts[i])
+        if err is not None:
+            system.event(ts, f"frame {i}: cannot read image ({err})")
+        system.timers["read"] += t_wait
+        rec = system.process(i, ts, img)
+        if recorder is not None and img is not None:
+            recorder.log_frame(system, ts, img, rec)
+        if bar is not None:
+            bar.update(1)
+            if i % 20 == 0:
+                bar.set_postfix(
+                    kf=len(system.map.history), lm=len(system.map.landmarks), st=rec.status if rec else "init"
+                )
+    if bar is not None:
+        bar.close()
+
+
+def _write_trajectory_and_map(system: SlamSystem, out: Path):
+    """``trajectory.txt``, ``keyframes.txt`` and ``sparse_map.ply``; returns the trajectory and the points."""
+    from runtime.io.ply import write_ply
+    from runtime.io.tum import write_tum
+
+    ts, T = system.trajectory()
+    kts, kT = system.keyframe_trajectory()
+    write_tum(out / "trajectory.txt", ts, T)
+    write_tum(out / "keyframes.txt", kts, kT)
+    _, pts = system.map.all_points()
+    pts = pts[np.isfinite(pts).all(1)] if pts.size else np.zeros((0, 3))
+    write_ply(out / "sparse_map.ply", pts)
+    return ts, T, pts
+
+
+def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict:
+    """Trajectory metrics against the sequence's ground truth (when it has one) and the top-view plot."""
+    from runtime import eval as ev
+
+    name = Path(str(seq.root)).name
+    if seq.gt is None or len(ts) < 2:
+        if plot and len(ts) >= 2:
+            ev.plot_top_view(out / "trajectory_top.png", ts, T, None, None, title=name)
+        return {}
+    res = {}
+    try:
+        res.update(ev.trajectory_metrics(ts, T, seq.gt.ts, seq.gt.T_w_b))
+        if plot:
+            ev.plot_top_view(out / "trajectory_top.png", ts, T, seq.gt.ts, seq.gt.T_w_b, title=name)
+    except Exception as e:  # noqa: BLE001 - evaluation must not lose the run's outputs
+        res["eval_error"] = f"{type(e).__name__}: {e}"
+        log.error("evaluation failed: %s", e)
+    return res
+
+
+def _read_image(seq, i: int):
+    try:
+        return seq.image(i), None
+    except Exception as e:  # noqa: BLE001 - a corrupt or vanished image must not stop the run
+        return None, f"{type(e).__name__}: {str(e)[:200]}"
+
+
+def _prefetched_images(seq, n: int, depth: int = 3):
+    """Yield ``(i, image or None, error or None, seconds waited)``; PNG decoding runs ahead in a thread
+    (OpenCV releases the GIL, so it overlaps with tracking and optimisation on the second core)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="imread") as ex:
+        futs = deque(ex.submit(_read_image, seq, i) for i in range(min(depth, n)))
+        for i in range(n):
+            t0 = time.perf_counter()
+            img, err = futs.popleft().result()
+            waited = time.perf_counter() - t0
+            if i + depth < n:
+                futs.append(ex.submit(_read_image, seq, i + depth))
+            yield i, img, err, waited
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x

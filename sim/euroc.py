@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from runtime.geometry import Camera, R_to_quat_wxyz
-from runtime.io.euroc import GT_HEADER, IMU_HEADER
+from runtime.io.euroc import EUROC_CAM0, EUROC_T_B_C0, GT_HEADER, IMU_HEADER
 from sim.imu import EUROC_ADIS16448, ImuNoise, add_imu_noise, synthesize_imu
 from sim.render import Renderer
 from sim.scenes import PRESETS, Scene, make_scene
@@ -46,19 +46,6 @@ __all__ = [
     "write_euroc_sequence",
 ]
 
-#: EuRoC cam0 (MT9M034): intrinsics [fu, fv, cu, cv], radial-tangential distortion, resolution.
-EUROC_CAM0 = Camera(
-    458.654, 457.296, 367.215, 248.375, 752, 480, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
-)
-#: EuRoC cam0 ``T_BS``: pose of cam0 in the body (IMU) frame.
-EUROC_T_B_C0 = np.array(
-    [
-        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
-)
 IMU_RATE_HZ = 200
 CAM_EVERY = 10  # one camera frame per 10 IMU samples: 20 Hz
 DT_NS = 1_000_000_000 // IMU_RATE_HZ

@@ -88,6 +88,20 @@ GT_HEADER = (
     "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
     "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
 )
+#: EuRoC MAV cam0 (MT9M034) calibration as its ``sensor.yaml`` ships it: intrinsics [fu, fv, cu, cv],
+#: radial-tangential distortion, 752x480; the simulator writes it and the tests use it.
+EUROC_CAM0 = Camera(
+    458.654, 457.296, 367.215, 248.375, 752, 480, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
+)
+#: EuRoC cam0 ``T_BS``: pose of cam0 in the body (IMU) frame.
+EUROC_T_B_C0 = np.array(
+    [
+        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
 #: Default ``depth0`` PNG scale: value = depth_m * DEPTH_SCALE (TUM RGB-D convention), 0 = invalid.
 DEPTH_SCALE = 5000.0
 

@@ -14,16 +14,9 @@ import numpy as np
 
 from runtime.frontend.tracking import FrameFeatures
 from runtime.geometry import GRAVITY_W, Camera, inv_T
+from runtime.io.euroc import EUROC_CAM0 as EUROC_CAM
+from runtime.io.euroc import EUROC_T_B_C0 as EUROC_T_BS
 
-EUROC_T_BS = np.array(
-    [
-        [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-        [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-        [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
-)
-EUROC_CAM = Camera(458.654, 457.296, 367.215, 248.375, 752, 480, (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
 # camera at zero angles: optical axis along world +x, image x along -y, image y along -z
 R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 

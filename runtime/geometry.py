@@ -413,3 +413,24 @@ class NetworkMapping:
         return cv2.warpAffine(
             image, A, (self.out_w, self.out_h), flags=interp, borderMode=cv2.BORDER_CONSTANT
         )
+
+
+def project_pinhole(K, p_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of camera-frame points: ``uv = f * xy / z + c`` (no distortion, no guard on ``z``:
+    callers mask the points they cannot use).
+
+    Args:
+        K: ``(fx, fy, cx, cy)`` [px].
+        p_c: (N, 3) points in the camera frame [m].
+
+    Returns:
+        uv (N, 2) [px] and z (N,) [m].
+
+    >>> uv, z = project_pinhole((100.0, 100.0, 50.0, 40.0), np.array([[0.2, -0.1, 2.0]]))
+    >>> uv.tolist(), z.tolist()
+    ([[60.0, 35.0]], [2.0])
+    """
+    fx, fy, cx, cy = (float(k) for k in K)
+    p_c = np.asarray(p_c, dtype=np.float64).reshape(-1, 3)
+    z = p_c[:, 2]
+    return np.stack([fx * p_c[:, 0] / z + cx, fy * p_c[:, 1] / z + cy], -1), z

@@ -105,7 +105,7 @@ class DenseMapper:
             metrics.
         timers: dict to accumulate seconds in (``dense_network``, ``dense_factors``); the optimisation's
             time is in the system's ``optimize`` timer.
-        depth_source: :data:`DepthSource` of the keyframes' depth (default :func:`network_depth`).
+        depth_source: :data:`DepthSource` of the keyframes' depth (None: :func:`network_depth`).
         probe: optional :class:`runtime.dense.linearized.ApproxErrorProbe`, called after each optimisation.
     """
 
@@ -117,7 +117,7 @@ class DenseMapper:
         cfg: DenseConfig | None = None,
         depth_gt=None,
         timers: dict | None = None,
-        depth_source: DepthSource = network_depth,
+        depth_source: DepthSource | None = None,
         probe: ApproxErrorProbe | None = None,
     ) -> None:
         self.cfg = cfg or DenseConfig()
@@ -129,7 +129,7 @@ class DenseMapper:
         self.net_cam = self.mapping.camera(camera.pinhole())
         self.K_net = self.net_cam.intrinsics
         self.depth_gt = depth_gt
-        self.depth_source = depth_source
+        self.depth_source = network_depth if depth_source is None else depth_source
         self.probe = probe
         self.timers = timers if timers is not None else defaultdict(float)
         self.kfs: dict[int, _KfDense] = {}

@@ -201,6 +201,15 @@ def test_ground_truth_depth_source_keeps_the_code_part_of_the_network():
         oracle_depth_source(None)
     with pytest.raises(ValueError, match="b="):
         oracle_depth_source(lambda i: gt, b=0.0)
+    # as a depth source: the frame's ground truth on the camera grid, mapped to the network's (here the same)
+    from runtime.geometry import Camera, NetworkMapping
+
+    cam = Camera(4.0, 4.0, 2.0, 1.5, 5, 4)
+    src = oracle_depth_source(lambda i: gt if i == 7 else None, b=0.05)
+    g7 = src(Lin(), 7, cam, NetworkMapping.fit(5, 4, 5, 4))
+    np.testing.assert_allclose(g7.depth(c), want, atol=1e-6)
+    with pytest.raises(ValueError, match="frame 8"):
+        src(Lin(), 8, cam, NetworkMapping.fit(5, 4, 5, 4))
 
 
 def test_code_keyframes_are_the_newest_and_its_covisible_ones():

@@ -35,39 +35,40 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_slam import make_config, parse_value  # noqa: E402
+from benchmarks.bench_slam import apply_override, make_config  # noqa: E402
 from benchmarks.common import cpu_model, write_json  # noqa: E402
 from runtime.dense import DenseConfig  # noqa: E402
+from runtime.diagnostics.oracle_depth import oracle_depth_source  # noqa: E402
 from runtime.io.euroc import read_euroc  # noqa: E402
 from runtime.run import run_sequence  # noqa: E402
 
 MODES = {
     "sparse": None,
-    "dense_eq13": {"use_depth_residual": True, "use_consistency": False, "depth_source": "network"},
-    "dense_eq13_14": {"use_depth_residual": True, "use_consistency": True, "depth_source": "network"},
-    # the upper bound: Eq. 13 + 14 with the rendered depth in place of the network's prior (DenseConfig
-    # depth_source); what a perfect depth network would buy on the same sequences. Its rows use the Laplace
-    # sigma sqrt(2) * oracle_b: the rendered depth has no correlated error field to inflate for.
+    "dense_eq13": {"use_depth_residual": True, "use_consistency": False},
+    "dense_eq13_14": {"use_depth_residual": True, "use_consistency": True},
+    # the upper bound: Eq. 13 + 14 with the rendered depth in place of the network's prior
+    # (runtime.diagnostics.oracle_depth); what a perfect depth network would buy on the same sequences. Its rows
+    # use the Laplace sigma sqrt(2) * oracle_b: the rendered depth has no correlated error field to inflate for.
     "dense_gt_eq13_14": {
         "use_depth_residual": True,
         "use_consistency": True,
-        "depth_source": "ground_truth",
-        "sigma_per_b": float(np.sqrt(2.0)),
+        "factors": {"sigma_per_b": float(np.sqrt(2.0))},
     },
     # the upper bound with one residual at a time: which of the two moves the trajectory (not in the default run)
     "dense_gt_eq13": {
         "use_depth_residual": True,
         "use_consistency": False,
-        "depth_source": "ground_truth",
-        "sigma_per_b": float(np.sqrt(2.0)),
+        "factors": {"sigma_per_b": float(np.sqrt(2.0))},
     },
     "dense_gt_eq14": {
         "use_depth_residual": False,
         "use_consistency": True,
-        "depth_source": "ground_truth",
-        "sigma_per_b": float(np.sqrt(2.0)),
+        "factors": {"sigma_per_b": float(np.sqrt(2.0))},
     },
 }
+#: modes that run on the rendered depth (runtime.diagnostics.oracle_depth) instead of the network's prior
+GROUND_TRUTH_MODES = ("dense_gt_eq13_14", "dense_gt_eq13", "dense_gt_eq14")
+ORACLE_B = 0.02  # m, Laplace scale of the rendered depth
 DEFAULT_MODES = ("sparse", "dense_eq13", "dense_eq13_14", "dense_gt_eq13_14")
 
 
@@ -86,21 +87,22 @@ def sequence(data: Path, preset: str, duration: float, seed: int, scale: float) 
     return out
 
 
-#: DenseConfig keys that a mode decides (which residuals, which depth); ``--set`` changes the others
-MODE_KEYS = ("use_depth_residual", "use_consistency", "depth_source")
+#: DenseConfig keys that a mode decides (which residuals); ``--set`` changes the others
+MODE_KEYS = ("use_depth_residual", "use_consistency")
 
 
 def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
+    """The mode's DenseConfig with ``--set`` overrides (dotted keys: ``n_consis=200``, ``factors.min_sigma=0.01``)."""
     base = MODES[mode]
     if base is None:
         return None
-    d = dict(base)
+    d = json.loads(json.dumps(base))
     for s in sets:
         k, sep, v = s.partition("=")
         if not sep:
             raise SystemExit(f"bench_dense: --set needs key=value, got {s!r}")
-        d[k] = parse_value(v)
-    d.update({k: base[k] for k in MODE_KEYS})  # the mode decides the residuals and the depth source
+        apply_override(d, k, v)
+    d.update({k: base[k] for k in MODE_KEYS})  # the mode decides the residuals
     d.setdefault("save_maps", False)
     return DenseConfig.from_dict(d)
 
@@ -244,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         "--slam-set",
         nargs="*",
         default=[],
-        help="SlamConfig overrides key=value (conf/runtime keys, e.g. backend.window_size=8)",
+        help="SlamConfig overrides key=value (conf/slam/runtime keys, e.g. backend.window_size=8)",
     )
     ap.add_argument(
         "--model",
@@ -294,14 +296,16 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 root = root or sequence(Path(args.data), preset, args.duration, seed, args.scale)
                 t0 = time.perf_counter()
+                seq = read_euroc(root)
                 m = run_sequence(
-                    read_euroc(root),
+                    seq,
                     out / f"{preset}_s{seed}_{mode}",
                     make_config("default", args.slam_set),
                     progress=False,
                     plot=False,
                     dense=_dense_cfg(mode, args.set),
                     model_dir=args.model,
+                    depth_source=oracle_depth_source(seq.depth, ORACLE_B) if mode in GROUND_TRUTH_MODES else None,
                 )
                 rows.append(_row(preset, seed, mode, m))
                 r = rows[-1]

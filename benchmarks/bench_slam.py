@@ -49,12 +49,12 @@ STAGES = (
 
 
 def _load_preset(name: str) -> dict:
-    import yaml
+    from runtime.presets import runtime_preset
 
-    path = ROOT / "conf" / "runtime" / f"{name}.yaml"
-    if not path.is_file():
-        raise SystemExit(f"bench_slam: no runtime preset {path}")
-    return yaml.safe_load(path.read_text()) or {}
+    try:
+        return runtime_preset(name)
+    except ValueError as e:
+        raise SystemExit(f"bench_slam: {e}") from e
 
 
 def parse_value(text: str):
@@ -74,7 +74,7 @@ def parse_value(text: str):
     return v
 
 
-def _apply(d: dict, key: str, value: str) -> None:
+def apply_override(d: dict, key: str, value: str) -> None:
     parts = key.split(".")
     for p in parts[:-1]:
         d = d.setdefault(p, {})
@@ -87,7 +87,7 @@ def make_config(preset: str, overrides: list[str]) -> SlamConfig:
         k, sep, v = o.partition("=")
         if not sep:
             raise SystemExit(f"bench_slam: --set needs key=value, got {o!r}")
-        _apply(d, k, v)
+        apply_override(d, k, v)
     return SlamConfig.from_dict(d)
 
 
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--no-imu-noise", action="store_true", help="exact IMU (default: noise on)")
-    ap.add_argument("--runtime", default="default", help="conf/runtime/<name>.yaml preset")
+    ap.add_argument("--runtime", default="default", help="conf/slam/runtime/<name>.yaml preset")
     ap.add_argument("--set", nargs="*", default=[], help="overrides key=value of the runtime config")
     ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench"), help="sequence cache folder")
     ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_slam"))

@@ -34,13 +34,17 @@ def run_sequence(
     plot: bool = True,
     dense=None,
     model_dir: str | Path | None = None,
+    depth_source=None,
+    probe=None,
 ) -> dict:
     """Run the system over an io ``EurocSequence`` and write every output into ``out_dir``.
 
     ``dense``: a :class:`runtime.dense.DenseConfig` runs the tightly coupled dense system with the network in
     ``model_dir`` (default: the shipped model) and also writes ``dense_map.ply``, ``keyframe_depth/`` and the
     dense metrics (depth metrics of the sparse points, the c = 0 prior and the optimised codes when the
-    sequence has ``mav0/depth0``); None: the sparse system.
+    sequence has ``mav0/depth0``); None: the sparse system. ``depth_source`` and ``probe``: diagnostics injected
+    into the dense mapper (:class:`runtime.dense.DenseMapper`; e.g. the rendered depth in place of the network,
+    :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`).
 
     Returns:
         The metrics dictionary also written to ``metrics.json``.
@@ -49,15 +53,9 @@ def run_sequence(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     imu = ImuStream.from_sequence(seq, cfg.imu.gap_factor)
-    mapper = _make_mapper(seq, dense, model_dir) if dense is not None else None
+    mapper = _make_mapper(seq, dense, model_dir, depth_source, probe) if dense is not None else None
     system = SlamSystem(seq.camera, seq.T_b_c, imu, seq.imu, cfg, dense=mapper)
-    recorder = None
-    if viz == "rerun":
-        from runtime.viz import RerunRecorder
-
-        recorder = RerunRecorder(out / "slam.rrd", seq.camera, seq.T_b_c)
-    elif viz not in (None, "", "none"):
-        raise ValueError(f"viz={viz!r} is not 'rerun' or 'none'")
+    recorder = _make_recorder(viz, out, seq)
     n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
     t_start, cpu_start = time.perf_counter(), time.process_time()
     _run_frames(system, seq, n, recorder, progress)
@@ -103,14 +101,25 @@ def run_sequence(
     return metrics
 
 
-def _make_mapper(seq, dense, model_dir):
+def _make_recorder(viz: str | None, out: Path, seq):
+    """The Rerun recorder of ``viz="rerun"`` (``out/slam.rrd``), or None."""
+    if viz in (None, "", "none"):
+        return None
+    if viz != "rerun":
+        raise ValueError(f"viz={viz!r} is not 'rerun' or 'none'")
+    from runtime.viz import RerunRecorder
+
+    return RerunRecorder(out / "slam.rrd", seq.camera, seq.T_b_c)
+
+
+def _make_mapper(seq, dense, model_dir, depth_source, probe):
     """The dense mapper of configuration ``dense`` with the network in ``model_dir`` (None: the shipped one)."""
     from runtime.dense import DenseMapper
     from runtime.network import DepthNetwork, default_model_dir
 
     net = DepthNetwork(model_dir if model_dir is not None else default_model_dir())
     depth_gt = seq.depth if getattr(seq, "has_depth", False) else None
-    return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt)
+    return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
 def _run_frames(system: SlamSystem, seq, n: int, recorder, progress: bool) -> None:

@@ -27,7 +27,7 @@
 # (`benchmarks/results/bench_dense_60s_16seeds_model2_*.json`, seeds 0-2 of 0-15).
 #
 # **The upper bound** (`dense_gt_eq13_14`): the same dense system with the rendered depth in place of the network's
-# prior (`DenseConfig.depth_source = "ground_truth"`: `D(c) = D_gt + D_net(c) − D_net(0)`, `B` = 2 cm, Laplace sigma
+# prior (`runtime.diagnostics.oracle_depth`: `D(c) = D_gt + D_net(c) − D_net(0)`, `B` = 2 cm, Laplace sigma
 # `√2 B`). It tells what a perfect depth network would buy on these sequences.
 #
 # **What the committed run shows.** On `textured` dense Eq. 13 + 14 is at 4.0 ± 1.5 mm against 4.3 ± 1.6 mm sparse

@@ -14,7 +14,7 @@
 # of the bare wall `x = Lx` for 6 s (the *hold*; `sim_info.json` gives its time), then turns back. It calls
 # only the packages: `runtime.run.run_sequence` (sparse, and dense with Eq. 13 + 14 and the package's
 # default `DenseConfig`), `runtime.render` (z-buffered point splats from a virtual camera, SE(3) alignment
-# to ground truth), `runtime.sampling.sample_consistency_pixels` (the sampler the dense system calls) and
+# to ground truth), `runtime.dense.sampling.sample_consistency_pixels` (the sampler the dense system calls) and
 # the frontend's `FeatureDetector`.
 #
 # **Both runs stop at the end of the hold**, so that the sliding window, and with it the local dense map
@@ -87,7 +87,8 @@ from benchmarks import bench_dense
 from benchmarks.common import run_provenance
 from IPython.display import Image, Markdown, display
 from runtime.dense import DenseConfig
-from runtime.dense_map import gt_depth_to_network
+from runtime.dense.map import gt_depth_to_network
+from runtime.dense.sampling import cell_edges, cell_feature_counts, sample_consistency_pixels
 from runtime.frontend.features import FeatureDetector
 from runtime.geometry import Camera, NetworkMapping
 from runtime.io.euroc import read_euroc
@@ -95,7 +96,6 @@ from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
 from runtime.network import DepthNetwork, default_model_dir
 from runtime.render import align_se3, look_at, project_points, render_points
-from runtime.sampling import cell_edges, cell_feature_counts, sample_consistency_pixels
 from runtime.run import run_sequence
 from runtime.slam import SlamConfig
 

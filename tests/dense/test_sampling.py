@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from runtime.sampling import (
+from runtime.dense.sampling import (
     allocate_samples,
     cell_edges,
     cell_feature_counts,

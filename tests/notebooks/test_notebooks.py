@@ -208,7 +208,7 @@ def test_03_trajectories_tiny(tmp_path, sim_cache):
     assert res["dense_configs"]["sparse"] is None
     assert res["dense_configs"]["dense_eq13"]["use_consistency"] is False
     assert res["dense_configs"]["dense_eq13_14"]["use_consistency"] is True
-    assert res["dense_configs"]["dense_gt_eq13_14"]["depth_source"] == "ground_truth"
+    assert res["dense_configs"]["dense_gt_eq13_14"]["factors"]["sigma_per_b"] == pytest.approx(2**0.5)
     # the rendered depth is the prior there: its c = 0 depth equals the ground truth (interpolation aside)
     assert rows[("textured", "dense_gt_eq13_14")]["rmse_b"] < 1e-3 < rows[("textured", "dense_eq13_14")]["rmse_b"]
     assert "| textured | dense, Eq. 13 + 14 | 1 |" in res["table"]

@@ -145,3 +145,17 @@ def test_runtime_presets_match_the_typed_config():
     with initialize_config_dir(config_dir=str(conf / "slam"), version_base=None):
         composed = OmegaConf.to_container(compose("slam", overrides=["runtime=fast"]).runtime)
     assert flat(dataclasses.asdict(SlamConfig.from_dict(composed))) == {**flat(d), **changed}
+
+
+def test_dense_preset_is_generated_from_the_typed_config():
+    import dataclasses
+    from pathlib import Path
+
+    import yaml
+
+    from runtime.dense import DenseConfig
+    from runtime.presets import presets
+
+    text = (Path(__file__).resolve().parents[2] / "conf" / "slam" / "dense_settings" / "default.yaml").read_text()
+    assert text == presets()["dense_settings/default.yaml"]
+    assert dataclasses.asdict(DenseConfig.from_dict(yaml.safe_load(text))) == dataclasses.asdict(DenseConfig())

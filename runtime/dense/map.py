@@ -10,23 +10,21 @@
   resolution (:func:`gt_depth_to_network` maps ``mav0/depth0`` there), numpy only (``train.metrics`` is the
   torch version used in training; the formulas are the same).
 
-Uncertainty filter: a pixel is kept when its Laplace scale ``B`` is at most ``max_uncertainty`` [m] and
-``B / depth`` at most ``max_rel_uncertainty`` (either may be None), and ``min_depth <= depth <= max_depth``.
+Uncertainty filter: :class:`runtime.dense.config.DenseMapConfig`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from runtime.dense.config import DenseMapConfig
 from runtime.geometry import Camera, NetworkMapping
 from runtime.io.ply import write_ply
 
 __all__ = [
-    "DenseMapConfig",
     "uncertainty_mask",
     "backproject",
     "voxel_downsample",
@@ -46,36 +44,8 @@ DEPTH_PNG_SCALE = 5000.0
 EPS = 1e-3
 
 
-@dataclass(frozen=True)
-class DenseMapConfig:
-    """Settings of the local dense map.
-
-    Attributes:
-        max_uncertainty: largest Laplace scale ``B`` [m] kept (None: no absolute limit).
-        max_rel_uncertainty: largest ``B / depth`` kept (None: no relative limit).
-        min_depth, max_depth: depth range kept [m].
-        stride: back-project every ``stride``-th pixel in u and v (1: all).
-        voxel: voxel edge [m] of the downsampling (0: none).
-    """
-
-    max_uncertainty: float | None = None
-    max_rel_uncertainty: float | None = 0.1
-    min_depth: float = 0.1
-    max_depth: float = 10.0
-    stride: int = 1
-    voxel: float = 0.02
-
-    def __post_init__(self) -> None:
-        if self.stride < 1:
-            raise ValueError(f"stride={self.stride}: must be >= 1")
-        if self.voxel < 0:
-            raise ValueError(f"voxel={self.voxel}: must be >= 0")
-        if not 0 <= self.min_depth < self.max_depth:
-            raise ValueError(f"depth range [{self.min_depth}, {self.max_depth}] is empty")
-
-
 def uncertainty_mask(depth: np.ndarray, uncertainty: np.ndarray | None, cfg: DenseMapConfig) -> np.ndarray:
-    """Pixels (H, W) bool kept by the depth range and the uncertainty filter (module docstring)."""
+    """Pixels (H, W) bool kept by the depth range and the uncertainty filter (:class:`DenseMapConfig`)."""
     d = np.asarray(depth, dtype=np.float64)
     ok = np.isfinite(d) & (d >= cfg.min_depth) & (d <= cfg.max_depth)
     if uncertainty is not None:

@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from runtime.dense_map import (
-    DenseMapConfig,
+from runtime.dense.config import DenseMapConfig
+from runtime.dense.map import (
     backproject,
     depth_metrics,
     fuse_depth_maps,

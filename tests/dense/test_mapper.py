@@ -1,4 +1,5 @@
-"""The dense (tightly coupled) system end to end on a short rendered sequence with the shipped model."""
+"""The dense (tightly coupled) system end to end on a short rendered sequence with the shipped model, and the
+mapper's parts: the decoder cache, the depth sources, the code keyframes and the start wait."""
 
 import json
 from collections import defaultdict
@@ -6,17 +7,17 @@ from collections import defaultdict
 import gtsam
 import numpy as np
 import pytest
-from gtsam.symbol_shorthand import X
 
+import runtime.dense
 from apps.slam import main as slam_main
-from runtime.dense import DenseConfig, DenseMapper, GroundTruthDepth, LinearizedDepth, _KfDense, _Stats
-from runtime.geometry import to_pose3
+from runtime.dense import DenseConfig, DenseMapper, LinearizedDepth
+from runtime.dense.mapper import _Stats
+from runtime.diagnostics.oracle_depth import GroundTruthDepth, oracle_depth_source
 from runtime.io.euroc import read_euroc
 from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
 from runtime.network import DepthNetwork, default_model_dir
 from runtime.run import run_sequence
-from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
 
 sim_euroc = pytest.importorskip("sim.euroc")
 
@@ -30,9 +31,45 @@ def seq8(tmp_path_factory):
     )
 
 
+#: the backend's read interface for factor providers: all that the mapper may use
+BACKEND_READ = {"window_ids", "has_keyframe", "keyframe", "observations", "covisible_keyframes", "latest", "init_kf_id"}
+
+
+class ReadInterface:
+    """A backend seen through its read interface only: any other member is an error."""
+
+    def __init__(self, backend):
+        self._backend = backend
+
+    def __getattr__(self, name):
+        if name not in BACKEND_READ:
+            raise AttributeError(f"the dense mapper read backend.{name}, outside the backend's read interface")
+        return getattr(self._backend, name)
+
+
+class InterfaceOnlyMapper(DenseMapper):
+    """A DenseMapper that gets the backend through :class:`ReadInterface` in every call."""
+
+    def on_keyframe(self, backend, *a):
+        return super().on_keyframe(ReadInterface(backend), *a)
+
+    def add_factors(self, backend, graph, values):
+        return super().add_factors(ReadInterface(backend), graph, values)
+
+    def on_optimized(self, backend, result):
+        return super().on_optimized(ReadInterface(backend), result)
+
+    def on_marginalize(self, backend, kf_id):
+        return super().on_marginalize(ReadInterface(backend), kf_id)
+
+    def finish(self, backend, out_dir):
+        return super().finish(ReadInterface(backend), out_dir)
+
+
 @pytest.fixture(scope="module")
 def runs(seq8, tmp_path_factory):
-    """A sparse run and a dense run (Eq. 13 + 14) recording every decoder batch."""
+    """A sparse run and a dense run (Eq. 13 + 14) recording every decoder batch, the mapper reading the backend
+    through its read interface only."""
     sparse_out = tmp_path_factory.mktemp("sparse")
     m_sparse = run_sequence(read_euroc(seq8), sparse_out, progress=False, plot=False)
     dense_out = tmp_path_factory.mktemp("dense")
@@ -45,11 +82,13 @@ def runs(seq8, tmp_path_factory):
         return orig(self, codes, features)
 
     DepthNetwork.decode = spy
+    runtime.dense.DenseMapper = InterfaceOnlyMapper
     try:
         cfg = DenseConfig(n_consis=200, start_after_s=2.0)
         m_dense = run_sequence(read_euroc(seq8), dense_out, dense=cfg, progress=False, plot=False)
     finally:
         DepthNetwork.decode = orig
+        runtime.dense.DenseMapper = DenseMapper
     return sparse_out, m_sparse, dense_out, m_dense, calls
 
 
@@ -113,7 +152,7 @@ def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
             return self.depth(c), self.B + self.Q[..., None] * c[None, None, :]
 
     kd = Lin()
-    p = LinearizedDepth(kd, threshold=0.5)
+    p = LinearizedDepth(kd)
     c0 = np.array([0.1, -0.2, 0.3])
     p.relinearize(c0)
     p.relinearize(c0)  # same code: no new evaluation
@@ -123,8 +162,12 @@ def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
     err = np.abs(p.depth(c0 + dc) - kd.depth(c0 + dc)).max()
     assert err < 0.5 * np.abs(kd.Q).max() * float(dc @ dc) + 1e-6  # second-order remainder only
     assert kd.calls == 1
-    p.depth(c0 + np.array([1.0, 0.0, 0.0]))  # moved beyond the threshold: relinearised
+    far = c0 + np.array([1.0, 0.0, 0.0])
+    p.depth(far)  # during LM a code stays on the expansion however far it moved
+    assert kd.calls == 1
+    p.relinearize(far)  # the next optimisation relinearises exactly
     assert kd.calls == 2
+    np.testing.assert_allclose(p.depth(far), kd.depth(np.float32(far).astype(np.float64)), atol=1e-6)
 
 
 def test_ground_truth_depth_source_keeps_the_code_part_of_the_network():
@@ -154,22 +197,50 @@ def test_ground_truth_depth_source_keeps_the_code_part_of_the_network():
     assert g.uncertainty.shape == (4, 5) and np.all(g.uncertainty == np.float32(0.05))
     with pytest.raises(ValueError, match="does not match"):
         GroundTruthDepth(Lin(), np.ones((3, 3)), b=0.05)
-    with pytest.raises(ValueError, match="depth_source"):
-        DenseConfig(depth_source="lidar")
+    with pytest.raises(ValueError, match="ground-truth depth"):
+        oracle_depth_source(None)
+    with pytest.raises(ValueError, match="b="):
+        oracle_depth_source(lambda i: gt, b=0.0)
+    # as a depth source: the frame's ground truth on the camera grid, mapped to the network's (here the same)
+    from runtime.geometry import Camera, NetworkMapping
+
+    cam = Camera(4.0, 4.0, 2.0, 1.5, 5, 4)
+    src = oracle_depth_source(lambda i: gt if i == 7 else None, b=0.05)
+    g7 = src(Lin(), 7, cam, NetworkMapping.fit(5, 4, 5, 4))
+    np.testing.assert_allclose(g7.depth(c), want, atol=1e-6)
+    with pytest.raises(ValueError, match="frame 8"):
+        src(Lin(), 8, cam, NetworkMapping.fit(5, 4, 5, 4))
 
 
-def test_code_keyframes_fall_back_to_the_most_recent_when_nothing_is_covisible():
+def test_dense_config_holds_the_factor_and_map_settings_once():
+    cfg = DenseConfig()
+    f, m = cfg.factors, cfg.map  # the values the dense system runs with
+    assert f.sigma_per_b == 8.0 * 2.0**0.5 and f.min_sigma == 0.02 and f.edge_rel == 0.05 and f.chunk_size == 32
+    assert f.geo_huber_k == 1.5 and f.consis_huber_k == 1.5 and not f.check_shapes
+    assert (m.max_rel_uncertainty, m.voxel, m.max_depth) == (0.1, 0.02, 10.0)
+    cfg = DenseConfig.from_dict({"n_consis": 50, "factors": {"min_sigma": 0.03}, "map": {"voxel": 0.05}})
+    assert (cfg.n_consis, cfg.factors.min_sigma, cfg.map.voxel) == (50, 0.03, 0.05)
+    assert cfg.factors.edge_rel == 0.05  # the untouched keys keep their defaults
+    with pytest.raises(ValueError, match="dense_settings.factors.bogus"):
+        DenseConfig.from_dict({"factors": {"bogus": 1}})
+    with pytest.raises(ValueError, match="edge_rel"):
+        DenseConfig.from_dict({"factors": {"edge_rel": 0.0}})
+    with pytest.raises(ValueError, match="n_consis"):
+        DenseConfig(n_consis=0)
+
+
+def test_code_keyframes_are_the_newest_and_its_covisible_ones():
     class Backend:
-        active = [3, 5, 6, 8, 9]
+        def window_ids(self):
+            return [3, 5, 6, 8, 9]
 
         def covisible_keyframes(self, kf, n):
             return [6] if kf == 9 else []  # only keyframe 6 shares landmarks with the newest
 
-    for fill, want in ((False, [9, 6]), (True, [9, 6, 8, 5])):
-        m = DenseMapper.__new__(DenseMapper)
-        m.cfg = DenseConfig(n_code_keyframes=4, fill_recent=fill)
-        m.kfs = dict.fromkeys(Backend.active)
-        assert m._select(Backend()) == want
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg = DenseConfig(n_code_keyframes=4)
+    m.kfs = dict.fromkeys(Backend().window_ids())
+    assert m._select(Backend()) == [9, 6]
 
 
 def test_depth_factors_wait_start_after_s_from_the_first_keyframe():
@@ -180,7 +251,13 @@ def test_depth_factors_wait_start_after_s_from_the_first_keyframe():
     class Backend:
         keyframes = {0: Kf(10**9), 1: Kf(3 * 10**9), 2: Kf(6 * 10**9 - 1), 3: Kf(6 * 10**9)}
         active = [0]
-        kf_obs = {}
+
+        def window_ids(self):
+            return list(self.active)
+
+        @property
+        def latest(self):
+            return self.keyframes[self.active[-1]]
 
         def covisible_keyframes(self, kf, n):
             return []
@@ -214,6 +291,13 @@ def test_depth_factors_wait_again_after_a_reset():
         init_kf_id = 0
         active = [1]
 
+        def keyframe(self, k):
+            return self.keyframes[k]
+
+        @property
+        def latest(self):
+            return self.keyframes[self.active[-1]]
+
     m = DenseMapper.__new__(DenseMapper)
     m.cfg = DenseConfig(start_after_s=5.0)
     m.t_first_ns = m.armed_for = None
@@ -228,58 +312,6 @@ def test_depth_factors_wait_again_after_a_reset():
         m._arm_start(b, k)
         b.active = [k]
         assert (m.t_first_ns, m._started(b)) == (want_first * 10**9, started)
-
-
-def test_bridge_factors_hold_archived_depth_maps_against_the_wall():
-    # a camera backing away from the wall x = 3 in four keyframes; 0 and 1 left the window (their depth maps
-    # are archived while their states are), 2 and 3 are active; keyframe 9 was archived and then forgotten
-    H, W = 48, 64
-    K = network_K(H, W)
-    poses = {k: body_pose((0.0, 0.0, 0.05 * k), (-0.2 * k, 0.1 * k, 0.0)) for k in range(4)}
-
-    class Provider:  # a keyframe's network state: its decoded depth is the wall's
-        def __init__(self, k):
-            self.D = plane_depth(poses[k], K, (H, W), 3.0)
-            self.uncertainty = np.full((H, W), 0.01, np.float32)
-
-        def exact(self, code):
-            return self.D
-
-    class Backend:
-        archived_states = {0: None, 1: None}
-
-    m = DenseMapper.__new__(DenseMapper)
-    m.cfg = DenseConfig(bridge_span=2, n_consis=40)
-    m.fcfg = m.cfg.factor_config()
-    m.net = type("Net", (), {"width": W, "height": H})()
-    m.K_net, m.T_b_c = K, T_B_C
-    m.depth_gt, m.per_kf_metrics, m.stats, m.timers = None, {}, _Stats(), defaultdict(float)
-    m.kfs = {k: _KfDense(k, k, Provider(k), np.zeros((0, 2)), None, np.zeros(8)) for k in range(4)}
-    m.archive = {9: None}
-    for k in (0, 1):
-        m.on_marginalize(Backend(), k)
-    assert sorted(m.archive) == [0, 1] and sorted(m.kfs) == [2, 3]
-    assert m.archive[0].depth_map.dtype == np.float32
-    facs = m.bridge_factors(Backend(), poses)
-    # each keyframe with its next two: (1, 0), (2, 0), (2, 1), (3, 1), (3, 2); newer key first
-    assert [tuple(gtsam.DefaultKeyFormatter(k) for k in f.keys()) for f in facs] == [
-        (f"x{a}", f"x{b}") for a, b in ((1, 0), (2, 0), (2, 1), (3, 1), (3, 2))
-    ]
-    v = gtsam.Values()
-    for k, T in poses.items():
-        v.insert(X(k), to_pose3(T))
-    for f in facs:
-        r = f.unwhitenedError(v)
-        assert np.count_nonzero(r) > 20 and np.abs(r).max() < 1e-4  # consistent at the true poses
-    moved = poses[3].copy()
-    moved[0, 3] += 0.1  # keyframe 3 10 cm closer to the wall than its depth map says
-    v.update(X(3), to_pose3(moved))
-    r = facs[-1].unwhitenedError(v)
-    assert np.median(np.abs(r[r != 0])) > 0.05
-    m.cfg = DenseConfig(bridge_span=0)
-    assert m.bridge_factors(Backend(), poses) == []  # span 0: the bridge stays inertial
-    with pytest.raises(ValueError, match="bridge_span"):
-        DenseConfig(bridge_span=-1)
 
 
 def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):

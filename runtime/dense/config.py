@@ -1,0 +1,141 @@
+"""Settings of the dense system, each defined once: the depth factors, the local dense map, and the mapper that
+holds them (Hydra ``dense_settings`` in ``conf/slam.yaml``; ``dense_settings.factors.*``, ``dense_settings.map.*``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from runtime.config import dataclass_from_dict
+
+__all__ = ["SIGMA_PER_LAPLACE_B", "DepthFactorConfig", "DenseMapConfig", "DenseConfig"]
+
+#: Standard deviation of a Laplace distribution per unit of its scale ``B`` (variance ``2 B^2``).
+SIGMA_PER_LAPLACE_B = math.sqrt(2.0)
+
+
+@dataclass(frozen=True)
+class DepthFactorConfig:
+    """Settings of the depth factors (Eq. 13-14, :mod:`runtime.dense.factors`).
+
+    Attributes:
+        sigma_per_b: row sigma per unit of the predicted Laplace scale ``B`` (``sqrt(2)``: Laplace). 8x Laplace:
+            a depth map's errors are one smooth field, so hundreds of rows on one map are worth a handful of
+            independent ones (``reports/``).
+        min_sigma: floor on a row's sigma [m] (a tiny predicted ``B`` must not make a row rigid).
+        geo_huber_k: Huber threshold of Eq. 13 in sigmas (None or <= 0: no robust kernel).
+        consis_huber_k: Huber threshold of Eq. 14 in sigmas (None or <= 0: none, as Eq. 15).
+        consis_covariance: ``"full"`` (``dr/dd2``, with the image gradient of ``d_k1``) or ``"z"``
+            (``dz/dd2`` only).
+        chunk_size: landmarks per Eq. 13 factor (0: one factor per keyframe).
+        min_depth: smallest depth [m] in ``k1`` for an Eq. 14 sample to count.
+        edge_rel: depth-edge test of both residuals (:func:`runtime.dense.lookup.depth_edge_ratio`): rows
+            whose 3x3 depth range over its minimum exceeds it are not used; None: off. 0.05 removes the Eq. 14
+            rows that the rendered depth at the true poses puts decimetres off (``reports/``).
+        check_shapes: assert every Jacobian's shape at each linearisation (GTSAM accepts wrong shapes).
+    """
+
+    sigma_per_b: float = 8.0 * SIGMA_PER_LAPLACE_B
+    min_sigma: float = 0.02
+    geo_huber_k: float | None = 1.5
+    consis_huber_k: float | None = 1.5
+    consis_covariance: str = "full"
+    chunk_size: int = 32
+    min_depth: float = 0.05
+    edge_rel: float | None = 0.05
+    check_shapes: bool = False
+
+    def __post_init__(self) -> None:
+        if self.edge_rel is not None and not self.edge_rel > 0:
+            raise ValueError(f"edge_rel={self.edge_rel}: must be > 0 (or None: no depth-edge test)")
+        if not self.sigma_per_b > 0:
+            raise ValueError(f"sigma_per_b={self.sigma_per_b}: must be > 0")
+        if not self.min_sigma > 0:
+            raise ValueError(f"min_sigma={self.min_sigma}: must be > 0")
+        if self.consis_covariance not in ("full", "z"):
+            raise ValueError(f"consis_covariance={self.consis_covariance!r}: expected 'full' or 'z'")
+        if self.chunk_size < 0:
+            raise ValueError(f"chunk_size={self.chunk_size}: must be >= 0")
+
+
+@dataclass(frozen=True)
+class DenseMapConfig:
+    """Settings of the local dense map (:mod:`runtime.dense.map`).
+
+    A pixel is kept when its Laplace scale ``B`` is at most ``max_uncertainty`` [m] and ``B / depth`` at most
+    ``max_rel_uncertainty`` (either may be None), and ``min_depth <= depth <= max_depth``.
+
+    Attributes:
+        max_uncertainty: largest Laplace scale ``B`` [m] kept (None: no absolute limit).
+        max_rel_uncertainty: largest ``B / depth`` kept (None: no relative limit).
+        min_depth, max_depth: depth range kept [m].
+        stride: back-project every ``stride``-th pixel in u and v (1: all).
+        voxel: voxel edge [m] of the downsampling (0: none).
+    """
+
+    max_uncertainty: float | None = None
+    max_rel_uncertainty: float | None = 0.1
+    min_depth: float = 0.1
+    max_depth: float = 10.0
+    stride: int = 1
+    voxel: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.stride < 1:
+            raise ValueError(f"stride={self.stride}: must be >= 1")
+        if self.voxel < 0:
+            raise ValueError(f"voxel={self.voxel}: must be >= 0")
+        if not 0 <= self.min_depth < self.max_depth:
+            raise ValueError(f"depth range [{self.min_depth}, {self.max_depth}] is empty")
+
+
+@dataclass
+class DenseConfig:
+    """Settings of the dense (tightly coupled) system (:class:`runtime.dense.mapper.DenseMapper`).
+
+    Attributes:
+        n_code_keyframes: keyframes of the window with a depth code (the newest + its most co-visible ones).
+        use_depth_residual: Eq. 13 factors.
+        use_consistency: Eq. 14 factors.
+        n_consis: ``N_consis``, Eq. 14 samples per keyframe pair (Sec. 5.2 sampler).
+        code_prior_sigma: sigma of the ``N(0, I)`` code prior (1: the CVAE prior).
+        start_after_s: seconds after the first keyframe (the initialisation) before codes and depth factors
+            join the window's optimisations (0: from the first one); a re-initialisation after a reset waits
+            again. While the visual-inertial scale and gravity still converge, a biased depth network pulls
+            them and that early error stays in the trajectory (``reports/``).
+        save_maps: write per-keyframe depth / uncertainty maps.
+        seed: sampler seed (combined with the keyframe ids of a pair).
+        factors: the depth factors' settings.
+        map: the local dense map's settings.
+    """
+
+    n_code_keyframes: int = 5
+    use_depth_residual: bool = True
+    use_consistency: bool = True
+    n_consis: int = 300
+    code_prior_sigma: float = 1.0
+    start_after_s: float = 5.0
+    save_maps: bool = True
+    seed: int = 0
+    factors: DepthFactorConfig = field(default_factory=DepthFactorConfig)
+    map: DenseMapConfig = field(default_factory=DenseMapConfig)
+
+    def __post_init__(self) -> None:
+        if self.n_code_keyframes < 1:
+            raise ValueError(f"n_code_keyframes={self.n_code_keyframes}: must be >= 1")
+        if not self.start_after_s >= 0:
+            raise ValueError(f"start_after_s={self.start_after_s}: must be >= 0")
+        if self.n_consis < 1:
+            raise ValueError(f"n_consis={self.n_consis}: must be >= 1")
+        if not self.code_prior_sigma > 0:
+            raise ValueError(f"code_prior_sigma={self.code_prior_sigma}: must be > 0")
+        if not isinstance(self.factors, DepthFactorConfig):
+            raise ValueError(f"factors={self.factors!r}: expected a DepthFactorConfig")
+        if not isinstance(self.map, DenseMapConfig):
+            raise ValueError(f"map={self.map!r}: expected a DenseMapConfig")
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> DenseConfig:
+        """Build from a (nested) mapping; unknown keys raise naming the key (``dense_settings.factors.x``)."""
+        return dataclass_from_dict(cls, d or {}, "dense_settings")

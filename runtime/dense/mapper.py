@@ -1,0 +1,355 @@
+"""Tight coupling of the depth network with the sliding window (Sec. 3.3, 5.2-5.3, Eq. 2, 13-17).
+
+:class:`DenseMapper` is a :class:`runtime.backend.graph.FactorProvider` registered with the backend when
+``dit-slam dense=true``. It reads the window only through the backend's public read interface
+(``window_ids``, ``has_keyframe``, ``keyframe``, ``observations``, ``covisible_keyframes``, ``latest``,
+``init_kf_id``).
+
+* **Network in the loop** (:meth:`DenseMapper.on_keyframe`): for each new keyframe the cam0 image is
+  undistorted, mapped to the network size (``NetworkMapping``), and the sparse depth image of the map points
+  the keyframe observes (projected with their current metric depth) is the ``grays`` sparse channel;
+  ``prior.onnx`` runs once per keyframe. The depth source (default: the network's prior as it is) may wrap it,
+  e.g. :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`.
+* **Depth codes** (:meth:`DenseMapper.add_factors`, called by the backend before each LM run): ``C(k)`` in
+  R^C for the newest keyframe and its ``n_code_keyframes - 1`` most co-visible active keyframes (Sec. 5.3,
+  "five most co-visible keyframes"), each with the CVAE prior ``N(0, I)`` (``PriorFactorVector``); Eq. 13
+  factors per code keyframe (landmarks as variables); Eq. 14 factors from the newest code keyframe to every
+  other code keyframe on the Sec. 5.2 samples (``n_consis`` per keyframe). Factors are rebuilt at every
+  optimisation (their noise models are evaluated at the current estimate), and each code keyframe's decoder
+  is relinearised then (:class:`runtime.dense.linearized.LinearizedDepth`).
+* **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the window's keyframes' decoded depths,
+  uncertainty-filtered and fused, :func:`runtime.dense.map.fuse_depth_maps`), per-keyframe depth and
+  uncertainty maps in ``keyframe_depth/``, and with ground-truth depth (``mav0/depth0``) the Table 2 metrics
+  of (a) the sparse map points, (b) the prior at c = 0, (c) the optimised code, on every keyframe that held a
+  code, each evaluated when the keyframe left the window (or at the end).
+
+This module never imports torch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from runtime.dense.config import DenseConfig
+from runtime.dense.factors import make_consistency_factor, make_geometric_depth_factors
+from runtime.dense.linearized import ApproxErrorProbe, LinearizedDepth
+from runtime.dense.map import (
+    depth_metrics,
+    fuse_depth_maps,
+    gt_depth_to_network,
+    mean_metrics,
+    save_keyframe_maps,
+    sparse_depth_image,
+    write_dense_map,
+)
+from runtime.dense.sampling import sample_consistency_pixels
+from runtime.geometry import Camera, NetworkMapping, inv_T, project_pinhole
+
+__all__ = ["DepthSource", "network_depth", "DenseMapper"]
+
+log = logging.getLogger(__name__)
+
+#: Where a keyframe's depth comes from: ``source(kd, frame_idx, camera, mapping) -> provider``, given the
+#: network's :class:`runtime.network.KeyframeDepth` ``kd`` of the keyframe, the raw cam0 model and the
+#: mapping to network pixels; the provider has ``kd``'s interface (``net``, ``uncertainty``, ``depth``,
+#: ``jacobian``).
+DepthSource = Callable[[object, int, Camera, NetworkMapping], object]
+
+#: Smallest camera depth [m] of a map point projected into the network's sparse-depth input.
+MIN_POINT_DEPTH = 0.05
+
+
+def network_depth(kd, frame_idx: int, camera: Camera, mapping: NetworkMapping):
+    """The default :data:`DepthSource`: the network's prior as it is."""
+    return kd
+
+
+@dataclass
+class _KfDense:
+    kf_id: int
+    frame_idx: int
+    provider: LinearizedDepth
+    feat_uv: np.ndarray  # (F, 2) network pixels of the keyframe's tracked features
+    image: np.ndarray  # (H, W) uint8 grey at network size
+    code: np.ndarray  # (C,) current code
+    had_code: bool = False
+    evaluated: bool = False
+
+
+@dataclass
+class _Stats:
+    n_optim: int = 0
+    n_skipped: int = 0  # optimisations before start_after_s
+    n_code_kfs: list = field(default_factory=list)
+    n_geo_rows: list = field(default_factory=list)
+    n_consis_rows: list = field(default_factory=list)
+
+
+class DenseMapper:
+    """Depth codes ``C(k)``, Eq. 13-14 factors and the local dense map (module doc).
+
+    Args:
+        net: :class:`runtime.network.DepthNetwork` (``grays`` or ``gray`` modality).
+        camera: raw cam0 model (distorted); images are undistorted with it.
+        T_b_c: (4, 4) cam0-to-body.
+        cfg: settings.
+        depth_gt: optional ``frame_idx -> (H, W) metres or None`` (ground truth on cam0's grid), for the depth
+            metrics.
+        timers: dict to accumulate seconds in (``dense_network``, ``dense_factors``); the optimisation's
+            time is in the system's ``optimize`` timer.
+        depth_source: :data:`DepthSource` of the keyframes' depth (None: :func:`network_depth`).
+        probe: optional :class:`runtime.dense.linearized.ApproxErrorProbe`, called after each optimisation.
+    """
+
+    def __init__(
+        self,
+        net,
+        camera: Camera,
+        T_b_c: np.ndarray,
+        cfg: DenseConfig | None = None,
+        depth_gt=None,
+        timers: dict | None = None,
+        depth_source: DepthSource | None = None,
+        probe: ApproxErrorProbe | None = None,
+    ) -> None:
+        self.cfg = cfg or DenseConfig()
+        self.net = net
+        self.camera = camera
+        self.T_b_c = np.asarray(T_b_c, np.float64)
+        self.T_c_b = inv_T(self.T_b_c)
+        self.mapping = NetworkMapping.fit(camera.width, camera.height, net.width, net.height)
+        self.net_cam = self.mapping.camera(camera.pinhole())
+        self.K_net = self.net_cam.intrinsics
+        self.depth_gt = depth_gt
+        self.depth_source = network_depth if depth_source is None else depth_source
+        self.probe = probe
+        self.timers = timers if timers is not None else defaultdict(float)
+        self.kfs: dict[int, _KfDense] = {}
+        self.code_kfs: list[int] = []
+        self.per_kf_metrics: dict[int, dict] = {}
+        self.stats = _Stats()
+        self.t_first_ns: int | None = None  # the window's first keyframe's time (start_after_s counts from it)
+        self.armed_for: int | None = None  # the backend's init_kf_id that t_first_ns belongs to
+        self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
+
+    # ------------------------------------------------------------------ keyframes
+    def on_keyframe(self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray) -> None:
+        """Run the network prior for a new keyframe.
+
+        Args:
+            backend: the :class:`SlidingWindowBackend` (the keyframe and its observations are in it).
+            kf_id, frame_idx: the keyframe.
+            image: (H, W) uint8 distorted cam0 image.
+            feat_uv_u: (F, 2) undistorted pixels of the keyframe's tracked features (for the sampler).
+        """
+        t0 = time.perf_counter()
+        self._arm_start(backend, kf_id)
+        for k in [k for k in self.kfs if not backend.has_keyframe(k)]:  # a reset cleared the window
+            del self.kfs[k]
+        und = self.camera.undistort_image(image)
+        img_net = self.mapping.image_to_network(und)
+        sparse = None
+        if self.net.uses_sparse:
+            uv, z = self._observed_points(backend, kf_id)
+            sparse = sparse_depth_image(self.mapping.points_to_network(uv), z, (self.net.height, self.net.width))
+        kd = self.depth_source(self.net.prior(img_net, sparse), frame_idx, self.camera, self.mapping)
+        feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
+        self.kfs[kf_id] = _KfDense(kf_id, frame_idx, LinearizedDepth(kd), feat, img_net, np.zeros(self.net.code_dim))
+        self.timers["dense_network"] += time.perf_counter() - t0
+
+    def _observed_points(self, backend, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Undistorted pixels (N, 2) and depths (N,) of the landmarks with two or more views observed by
+        ``kf_id``, projected with their current positions."""
+        _, X, _ = backend.observations(kf_id, min_views=2)
+        if X.shape[0] == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        T_c_w = self.T_c_b @ inv_T(backend.keyframe(kf_id).T_w_b)
+        p = X @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+        return project_pinhole(self.camera.intrinsics, p[p[:, 2] > MIN_POINT_DEPTH])
+
+    # ------------------------------------------------------------------ FactorProvider
+    def _select(self, backend) -> list[int]:
+        window = backend.window_ids()
+        newest = window[-1]
+        cand = [newest] + backend.covisible_keyframes(newest, len(window))
+        return [k for k in cand if k in self.kfs][: self.cfg.n_code_keyframes]
+
+    def _arm_start(self, backend, kf_id: int) -> None:
+        """Start the ``start_after_s`` wait at ``kf_id`` when it is the first keyframe after an initialisation
+        (the first of the run, or a re-initialisation after a reset: the backend's ``init_kf_id`` changed)."""
+        init_id = backend.init_kf_id
+        if self.t_first_ns is None or init_id != self.armed_for:
+            self.t_first_ns = int(backend.keyframe(kf_id).ts)
+            self.armed_for = init_id
+
+    def _started(self, backend) -> bool:
+        newest = backend.latest
+        return self.t_first_ns is not None and (newest.ts - self.t_first_ns) * 1e-9 >= self.cfg.start_after_s
+
+    def add_factors(self, backend, graph, values) -> None:
+        import gtsam
+        from gtsam.symbol_shorthand import C
+
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        if cfg.start_after_s > 0 and not self._started(backend):
+            self.code_kfs = []
+            self.stats.n_skipped += 1
+            return
+        self.code_kfs = sel = self._select(backend)
+        Cd = self.net.code_dim
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(Cd, cfg.code_prior_sigma)
+        n_geo = n_con = 0
+        for k in sel:
+            d = self.kfs[k]
+            d.had_code = True
+            d.provider.relinearize(d.code)
+            values.insert(C(k), np.asarray(d.code, np.float64))
+            graph.push_back(gtsam.PriorFactorVector(C(k), np.zeros(Cd), prior_noise))
+            if cfg.use_depth_residual:
+                for f in self._geometric_factors(backend, k, values):
+                    graph.push_back(f)
+                    n_geo += f.dim()
+        if cfg.use_consistency and len(sel) >= 2:
+            for k2 in sel[1:]:
+                f = self._consistency_factor(backend, sel[0], k2)
+                if f is not None:
+                    graph.push_back(f)
+                    n_con += f.dim()
+        self.stats.n_optim += 1
+        self.stats.n_code_kfs.append(len(sel))
+        self.stats.n_geo_rows.append(n_geo)
+        self.stats.n_consis_rows.append(n_con)
+        self.timers["dense_factors"] += time.perf_counter() - t0
+
+    def _geometric_factors(self, backend, k: int, values) -> list:
+        """Eq. 13 factors of code keyframe ``k`` on its observations of the window's landmarks."""
+        from gtsam.symbol_shorthand import C, L, X
+
+        ids, _, uv = backend.observations(k)
+        ok = [i for i, j in enumerate(ids) if values.exists(L(int(j)))]
+        if not ok:
+            return []
+        d = self.kfs[k]
+        fcfg = self.cfg.factors
+        depth_map = d.provider.depth(d.code) if fcfg.edge_rel is not None else None
+        uvn = self.mapping.points_to_network(uv[ok])
+        keys = [L(int(j)) for j in ids[ok]]
+        return make_geometric_depth_factors(X(k), C(k), uvn, d.provider, self.T_b_c, keys, fcfg, depth_map)
+
+    def _consistency_factor(self, backend, k1: int, k2: int):
+        """Eq. 14 factor of the code keyframes ``(k1, k2)`` on the Sec. 5.2 samples of k2 (by its features), at
+        the window's poses and codes; None when no sample is usable."""
+        from gtsam.symbol_shorthand import C, X
+
+        d1, d2 = self.kfs[k1], self.kfs[k2]
+        rng = np.random.default_rng([self.cfg.seed, k1, k2])
+        s = sample_consistency_pixels(d2.feat_uv, self.net.width, self.net.height, self.cfg.n_consis, rng=rng, margin=2)
+        try:
+            return make_consistency_factor(
+                (X(k1), X(k2)),
+                (C(k1), C(k2)),
+                (d1.provider, d2.provider),
+                s.uv,
+                self.K_net,
+                self.T_b_c,
+                (backend.keyframe(k1).T_w_b, backend.keyframe(k2).T_w_b),
+                (d1.code, d2.code),
+                self.cfg.factors,
+            )
+        except ValueError as e:
+            log.info("dense: no consistency factor %d-%d (%s)", k1, k2, e)
+            return None
+
+    def on_optimized(self, backend, result) -> None:
+        from gtsam.symbol_shorthand import C
+
+        for k in self.code_kfs:
+            if result.exists(C(k)):
+                self.kfs[k].code = np.asarray(result.atVector(C(k)), np.float64).copy()
+        if self.probe is not None:
+            t0 = time.perf_counter()
+            self.probe([(self.kfs[k].provider, self.kfs[k].code) for k in self.code_kfs])
+            self.timers["dense_approx_check"] += time.perf_counter() - t0
+
+    def on_marginalize(self, backend, kf_id: int) -> None:
+        """A keyframe leaves the window: evaluate its depth (final code), free its network state."""
+        d = self.kfs.get(kf_id)
+        if d is None:
+            return
+        self._evaluate(backend, d)
+        del self.kfs[kf_id]
+
+    # ------------------------------------------------------------------ evaluation and outputs
+    def final_depth(self, d: _KfDense) -> np.ndarray:
+        return np.asarray(d.provider.exact(d.code), np.float64)
+
+    def _evaluate(self, backend, d: _KfDense) -> None:
+        if d.evaluated or not d.had_code or self.depth_gt is None:
+            return
+        d.evaluated = True
+        gt = self.depth_gt(d.frame_idx)
+        if gt is None:
+            return
+        gt_net = gt_depth_to_network(gt, self.camera, self.mapping)
+        uv, z = self._observed_points(backend, d.kf_id)
+        sp = sparse_depth_image(self.mapping.points_to_network(uv), z, gt_net.shape)
+        C = self.net.code_dim
+        self.per_kf_metrics[d.kf_id] = {
+            "sparse": depth_metrics(sp, gt_net) if (sp > 0).any() and (gt_net[sp > 0] > 0).any() else None,
+            "prior": depth_metrics(np.asarray(d.provider.exact(np.zeros(C)), np.float64), gt_net),
+            "optimised": depth_metrics(self.final_depth(d), gt_net),
+        }
+
+    def finish(self, backend, out_dir: str | Path) -> dict:
+        """Write ``dense_map.ply`` and per-keyframe maps; return the dense metrics for ``metrics.json``."""
+        out = Path(out_dir)
+        active = [k for k in backend.window_ids() if k in self.kfs]
+        for k in active:
+            self._evaluate(backend, self.kfs[k])
+        depths, poses, uncs, imgs = [], [], [], []
+        for k in active:
+            d = self.kfs[k]
+            depth = self.final_depth(d)
+            depths.append(depth)
+            poses.append(backend.keyframe(k).T_w_b)
+            uncs.append(d.provider.uncertainty)
+            imgs.append(d.image)
+            if self.cfg.save_maps:
+                save_keyframe_maps(out / "keyframe_depth", f"kf{k:05d}", depth, d.provider.uncertainty)
+        xyz, rgb = fuse_depth_maps(depths, poses, self.net_cam, self.T_b_c, uncs, imgs, self.cfg.map)
+        write_dense_map(out / "dense_map.ply", xyz, rgb)
+        self.dense_map = (xyz, rgb)  # for the Rerun recording
+        return self._metrics(len(active), int(xyz.shape[0]))
+
+    def _metrics(self, n_window: int, n_points: int) -> dict:
+        st = self.stats
+        res = {
+            "dense_map_points": n_points,
+            "dense_window_keyframes": n_window,
+            "dense_optimisations": st.n_optim,
+            "dense_optimisations_before_start": st.n_skipped,
+            "dense_mean_code_keyframes": float(np.mean(st.n_code_kfs)) if st.n_code_kfs else 0.0,
+            "dense_mean_geo_rows": float(np.mean(st.n_geo_rows)) if st.n_geo_rows else 0.0,
+            "dense_mean_consis_rows": float(np.mean(st.n_consis_rows)) if st.n_consis_rows else 0.0,
+            "decoder_calls": int(self.net.decoder_calls),
+            "dense_config": dataclasses.asdict(self.cfg),
+        }
+        if self.probe is not None:
+            res.update(self.probe.metrics())
+        if self.per_kf_metrics:
+            res["depth_metrics"] = {
+                stage: mean_metrics([m[stage] for m in self.per_kf_metrics.values() if m[stage] is not None])
+                for stage in ("sparse", "prior", "optimised")
+            }
+            res["depth_metrics_keyframes"] = len(self.per_kf_metrics)
+            res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"
+        return res

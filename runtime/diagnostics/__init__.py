@@ -1,0 +1,1 @@
+"""Diagnostics: injected providers that benchmarks use, outside the hot path."""

@@ -1,0 +1,5 @@
+"""Diagnostics outside the SLAM hot path: tools that benchmarks and notebooks use to explain a run's figures.
+
+:mod:`runtime.diagnostics.coast`: the IMU-only coast in front of a textureless wall, smoothed from exact end
+states (oracles), and a run's ATE split around that coast.
+"""

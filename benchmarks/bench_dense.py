@@ -23,23 +23,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from benchmarks.bench_slam import make_config, parse_value  # noqa: E402
-from benchmarks.common import cpu_model, write_json  # noqa: E402
-from runtime.dense import DenseConfig  # noqa: E402
-from runtime.io.euroc import read_euroc  # noqa: E402
-from runtime.slam import run_sequence  # noqa: E402
+from benchmarks.bench_slam import make_config, parse_value
+from benchmarks.common import REPO, slam_machine, write_json
+from runtime.dense import DenseConfig
+from runtime.io.euroc import read_euroc
+from runtime.slam import run_sequence
 
 MODES = {
     "sparse": None,
@@ -90,7 +83,9 @@ def sequence(data: Path, preset: str, duration: float, seed: int, scale: float) 
 MODE_KEYS = ("use_depth_residual", "use_consistency", "depth_source")
 
 
-def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
+def dense_config(mode: str, sets: list[str]) -> DenseConfig | None:
+    """The ``DenseConfig`` of a mode (None for ``sparse``): the mode's keys over ``sets`` ("key=value" overrides of
+    the other keys, as ``--set``) over the package defaults; per-keyframe maps are not saved unless set."""
     base = MODES[mode]
     if base is None:
         return None
@@ -124,7 +119,9 @@ def model_identity(model_dir: str | None) -> dict:
     }
 
 
-def _row(preset: str, seed: int, mode: str, m: dict) -> dict:
+def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
+    """One row of the table from a run's ``metrics.json`` dict ``m``: ATE [m], FPS, keyframes, decoder runs, the
+    drift found at a relocalisation [m] and the depth metrics of (a) sparse points, (b) prior, (c) optimised."""
     dm = m.get("depth_metrics") or {}
     r = {
         "preset": preset,
@@ -252,8 +249,8 @@ def main(argv: list[str] | None = None) -> int:
         help="exported network folder (prior.onnx, decoder.onnx, manifest.json) for the dense modes; default: the "
         "shipped model",
     )
-    ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_dense"))
+    ap.add_argument("--data", default=str(REPO / "data" / "sim" / "bench_dense"), help="sequence cache folder")
+    ap.add_argument("--out", default=str(REPO / "outputs" / "bench_dense"))
     ap.add_argument(
         "--resume",
         action="store_true",
@@ -267,13 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.ERROR)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    machine = {
-        "cpu": cpu_model(),  # SLAM runs are chaotic: another CPU's floating point gives other trajectories
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
-        "python": platform.python_version(),
-        "data": "synthetic (sim/)",
-    }
+    machine = slam_machine(data="synthetic (sim/)")
     done = resumable_rows(out / "bench_dense.json", run_args, machine) if args.resume else {}
     rows = []
     res = {
@@ -300,10 +291,10 @@ def main(argv: list[str] | None = None) -> int:
                     make_config("default", args.slam_set),
                     progress=False,
                     plot=False,
-                    dense=_dense_cfg(mode, args.set),
+                    dense=dense_config(mode, args.set),
                     model_dir=args.model,
                 )
-                rows.append(_row(preset, seed, mode, m))
+                rows.append(run_row(preset, seed, mode, m))
                 r = rows[-1]
                 print(
                     f"bench_dense: {preset} seed {seed} {mode}: ATE {r['ate']:.4f} m, {r['fps']:.1f} FPS, "

@@ -1,8 +1,8 @@
 """Helpers of the Jacobian and network benchmarks: machine info, JSON, tables, timing, models, data.
 
-The benchmark scripts put the repository root on ``sys.path`` and import this module as ``benchmarks.common``
-(``benchmarks/`` is not an installed package). Everything here may import torch: benchmarks compare the ONNX
-runtime with torch on the same weights.
+The benchmark scripts, notebooks and tests import this module as ``benchmarks.common`` (``benchmarks`` is an
+installed package). Everything here may import torch: benchmarks compare the ONNX runtime with torch on the same
+weights.
 
 Model sources (:func:`resolve_model`), in order:
 
@@ -106,6 +106,36 @@ def machine_info(**threads) -> dict:
         "torch_imported_before_policy": _TORCH_BEFORE_POLICY,
         **threads,
     }
+
+
+def slam_machine(**extra) -> dict:
+    """Machine fields of a SLAM benchmark's JSON (no torch), then ``extra``. The CPU model comes first: SLAM runs
+    are chaotic, another CPU's floating point gives other trajectories."""
+    return {
+        "cpu": cpu_model(),
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        **extra,
+    }
+
+
+def enter_repository(start: str | Path | None = None) -> Path:
+    """The repository root at or above ``start`` (default: the working directory), made the working directory.
+
+    A notebook's kernel may start in ``notebooks/`` or in the root; the notebooks' relative paths (``OUT``,
+    ``DATA``) are relative to the root.
+
+    Raises:
+        RuntimeError: ``start`` is not inside the dit-slam repository.
+    """
+    repo = Path(start or Path.cwd()).resolve()
+    while not (repo / "pyproject.toml").is_file():
+        if repo.parent == repo:
+            raise RuntimeError("run this notebook from inside the dit-slam repository")
+        repo = repo.parent
+    os.chdir(repo)
+    return repo
 
 
 def describe_machine(m: dict) -> str:

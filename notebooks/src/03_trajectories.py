@@ -9,8 +9,8 @@
 # Here the same ablation runs on the synthetic `textured` and `whitewall` sequences of `sim/` (60 s,
 # EuRoC's camera and IMU at 752x480 / 200 Hz, IMU noise, three seeds each; `whitewall` hovers 6 s in front
 # of a bare wall, see notebook 04), through the functions of the Table 3 benchmark
-# (`benchmarks/bench_dense.py`: `sequence` renders and caches the sequences, `MODES` and `_dense_cfg` give
-# each mode's `DenseConfig` on top of the package defaults, `_row` / `fmt_table` / `bars` tabulate) and
+# (`benchmarks/bench_dense.py`: `sequence` renders and caches the sequences, `MODES` and `dense_config` give
+# each mode's `DenseConfig` on top of the package defaults, `run_row` / `fmt_table` / `bars` tabulate) and
 # `runtime.slam.run_sequence`, which writes each run's `trajectory.txt` (TUM) and `metrics.json`; the tables
 # and figures below are read back from those files. Besides ATE and FPS the table carries the depth RMSE of
 # Table 2 on the keyframes that held a code: (a) the sparse map points, (b) the network prior at c = 0,
@@ -76,30 +76,20 @@ import dataclasses
 import json
 import logging
 import os
-import sys
 import time
-from pathlib import Path
-
-REPO = Path.cwd().resolve()
-while not (REPO / "pyproject.toml").is_file():  # the kernel may start in notebooks/ or in the repository root
-    if REPO.parent == REPO:
-        raise RuntimeError("run this notebook from inside the dit-slam repository")
-    REPO = REPO.parent
-os.chdir(REPO)
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import cpu_model, run_provenance
+from benchmarks.common import cpu_model, enter_repository, run_provenance
 from IPython.display import Image, Markdown, display
 from runtime.eval import trajectory_metrics
 from runtime.io.euroc import read_euroc
 from runtime.io.tum import read_tum
 from runtime.slam import SlamConfig, run_sequence
 
+REPO = enter_repository()
 matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json
 out = (REPO / OUT).resolve()
@@ -119,7 +109,7 @@ if unknown:
 # Per-keyframe depth maps are not saved (`save_maps=False`, as in the benchmark).
 
 # %%
-dense_cfgs = {mode: bench_dense._dense_cfg(mode, list(DENSE_SET)) for mode in MODES}
+dense_cfgs = {mode: bench_dense.dense_config(mode, list(DENSE_SET)) for mode in MODES}
 for mode, cfg in dense_cfgs.items():
     if cfg is None:
         print(f"{mode:14s} SlamConfig() only")
@@ -159,7 +149,7 @@ for preset in PRESETS:
             else:
                 m = run_sequence(seq, run_dir, SlamConfig(), progress=False, plot=False, dense=dense_cfgs[mode])
                 how = f"{time.time() - t0:.0f} s"
-            rows.append(bench_dense._row(preset, seed, mode, m))
+            rows.append(bench_dense.run_row(preset, seed, mode, m))
             r = rows[-1]
             print(
                 f"{preset:9s} seed {seed} {mode:14s} ATE {1e3 * r['ate']:7.1f} mm  {r['fps']:5.1f} FPS  "
@@ -307,12 +297,13 @@ display(Image(filename=out / "fig10_trajectories.png"))
 
 # %%
 from benchmarks import bench_coast
+from runtime.diagnostics.coast import coast_row
 
 coast_rows = []
 if "whitewall" in PRESETS:
     for seed in SEEDS:
         runs = {mode: run_dirs["whitewall", seed, mode] for mode in MODES}
-        coast_rows.append(bench_coast.coast_row(roots["whitewall", seed], seed, runs))
+        coast_rows.append(coast_row(roots["whitewall", seed], seed, runs))
     print(bench_coast.fmt_tables(coast_rows))
 
 # %%

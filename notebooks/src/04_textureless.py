@@ -66,25 +66,13 @@ TEXTURED_BEFORE_S = 8.0  # the textured keyframe of the Fig. 4 comparison: this 
 import dataclasses
 import json
 import logging
-import os
-import sys
 import time
-from pathlib import Path
-
-REPO = Path.cwd().resolve()
-while not (REPO / "pyproject.toml").is_file():  # the kernel may start in notebooks/ or in the repository root
-    if REPO.parent == REPO:
-        raise RuntimeError("run this notebook from inside the dit-slam repository")
-    REPO = REPO.parent
-os.chdir(REPO)
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import run_provenance
+from benchmarks.common import enter_repository, run_provenance
 from IPython.display import Image, Markdown, display
 from runtime.dense import DenseConfig
 from runtime.dense_map import gt_depth_to_network
@@ -98,6 +86,7 @@ from runtime.render import align_se3, look_at, project_points, render_points
 from runtime.sampling import cell_edges, cell_feature_counts, sample_consistency_pixels
 from runtime.slam import SlamConfig, run_sequence
 
+REPO = enter_repository()
 matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json
 out = (REPO / OUT).resolve()

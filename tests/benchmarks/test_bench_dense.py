@@ -36,12 +36,12 @@ def test_an_unknown_runtime_key_is_refused_before_anything_is_rendered(tmp_path)
 
 
 def test_dense_overrides_leave_the_mode_its_residuals_and_parse_numbers():
-    cfg = bench_dense._dense_cfg("dense_gt_eq14", ["sigma_per_b=3", "use_depth_residual=true", "edge_rel=5e-2"])
+    cfg = bench_dense.dense_config("dense_gt_eq14", ["sigma_per_b=3", "use_depth_residual=true", "edge_rel=5e-2"])
     assert cfg.sigma_per_b == 3.0 and cfg.edge_rel == pytest.approx(0.05)  # "5e-2" is a number, not a string
     assert cfg.use_depth_residual is False and cfg.use_consistency and cfg.depth_source == "ground_truth"
-    assert bench_dense._dense_cfg("dense_gt_eq14", []).sigma_per_b == pytest.approx(2**0.5)  # the mode's default
-    assert bench_dense._dense_cfg("sparse", ["edge_rel=0.05"]) is None
-    net = bench_dense._dense_cfg("dense_eq13", ["depth_source=ground_truth", "start_after_s=5"])
+    assert bench_dense.dense_config("dense_gt_eq14", []).sigma_per_b == pytest.approx(2**0.5)  # the mode's default
+    assert bench_dense.dense_config("sparse", ["edge_rel=0.05"]) is None
+    net = bench_dense.dense_config("dense_eq13", ["depth_source=ground_truth", "start_after_s=5"])
     assert net.depth_source == "network" and not net.use_consistency and net.start_after_s == 5.0
 
 

@@ -120,22 +120,35 @@ def slam_machine(**extra) -> dict:
     }
 
 
-def enter_repository(start: str | Path | None = None) -> Path:
-    """The repository root at or above ``start`` (default: the working directory), made the working directory.
+def start_notebook(out: str | Path) -> tuple[Path, Path, float]:
+    """Set a notebook up: the repository root as the working directory, its output folder, inline figure size.
 
-    A notebook's kernel may start in ``notebooks/`` or in the root; the notebooks' relative paths (``OUT``,
-    ``DATA``) are relative to the root.
+    The root is found at or above the working directory (a notebook's kernel may start in ``notebooks/`` or in
+    the root); the notebooks' relative paths (``OUT``, ``DATA``) are relative to it. Prints both folders.
+
+    Args:
+        out: the output folder, relative to the root (or absolute); created.
+
+    Returns:
+        ``(repo, out, t_start)``: the root, the output folder (absolute) and the start time (``time.time()``).
 
     Raises:
-        RuntimeError: ``start`` is not inside the dit-slam repository.
+        RuntimeError: the working directory is not inside the dit-slam repository.
     """
-    repo = Path(start or Path.cwd()).resolve()
+    import matplotlib
+
+    repo = Path.cwd().resolve()
     while not (repo / "pyproject.toml").is_file():
         if repo.parent == repo:
             raise RuntimeError("run this notebook from inside the dit-slam repository")
         repo = repo.parent
     os.chdir(repo)
-    return repo
+    matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
+    out_dir = (repo / out).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    print(f"repository {repo}\noutputs    {out_dir}")
+    return repo, out_dir, t_start
 
 
 def describe_machine(m: dict) -> str:

@@ -72,19 +72,13 @@ import os
 import time
 from pathlib import Path
 
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_jacobian, bench_network, common
 from IPython.display import Image, Markdown, display
 from runtime.network import default_model_dir
 
-REPO = common.enter_repository()
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
+REPO, out, t_start = common.start_notebook(OUT)
 print(f"machine    {common.cpu_model()}, {os.cpu_count()} cores, load {os.getloadavg()}")
 
 # %% [markdown]

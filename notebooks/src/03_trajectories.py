@@ -78,24 +78,18 @@ import logging
 import os
 import time
 
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import cpu_model, enter_repository, run_provenance
+from benchmarks.common import cpu_model, run_provenance, start_notebook
 from IPython.display import Image, Markdown, display
 from runtime.eval import trajectory_metrics
 from runtime.io.euroc import read_euroc
 from runtime.io.tum import read_tum
 from runtime.slam import SlamConfig, run_sequence
 
-REPO = enter_repository()
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
+REPO, out, t_start = start_notebook(OUT)
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
 print(run_provenance(REPO))  # machine, date, and which code ran
 unknown = sorted(set(MODES) - set(bench_dense.MODES))
 if unknown:

@@ -72,7 +72,7 @@ import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import enter_repository, run_provenance
+from benchmarks.common import run_provenance, start_notebook
 from IPython.display import Image, Markdown, display
 from runtime.dense import DenseConfig
 from runtime.dense_map import gt_depth_to_network
@@ -86,13 +86,8 @@ from runtime.render import align_se3, look_at, project_points, render_points
 from runtime.sampling import cell_edges, cell_feature_counts, sample_consistency_pixels
 from runtime.slam import SlamConfig, run_sequence
 
-REPO = enter_repository()
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
+REPO, out, t_start = start_notebook(OUT)
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
 print(run_provenance(REPO))  # machine, date, and which code ran
 
 # %% [markdown]

@@ -23,24 +23,17 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from benchmarks.bench_slam import apply_override, make_config  # noqa: E402
-from benchmarks.common import cpu_model, write_json  # noqa: E402
-from runtime.dense import DenseConfig  # noqa: E402
-from runtime.diagnostics.oracle_depth import oracle_depth_source  # noqa: E402
-from runtime.io.euroc import read_euroc  # noqa: E402
-from runtime.run import run_sequence  # noqa: E402
+from benchmarks.bench_slam import apply_override, make_config
+from benchmarks.common import REPO, slam_machine, write_json
+from runtime.dense import DenseConfig
+from runtime.diagnostics.oracle_depth import oracle_depth_source
+from runtime.io.euroc import read_euroc
+from runtime.run import run_sequence
 
 MODES = {
     "sparse": None,
@@ -91,8 +84,10 @@ def sequence(data: Path, preset: str, duration: float, seed: int, scale: float) 
 MODE_KEYS = ("use_depth_residual", "use_consistency")
 
 
-def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
-    """The mode's DenseConfig with ``--set`` overrides (dotted keys: ``n_consis=200``, ``factors.min_sigma=0.01``)."""
+def dense_config(mode: str, sets: list[str]) -> DenseConfig | None:
+    """The ``DenseConfig`` of a mode (None for ``sparse``): the mode's keys over ``sets`` ("key=value" overrides of
+    the other keys, as ``--set``; dotted for the nested ones, ``factors.min_sigma=0.01``) over the package
+    defaults; per-keyframe maps are not saved unless set."""
     base = MODES[mode]
     if base is None:
         return None
@@ -105,6 +100,20 @@ def _dense_cfg(mode: str, sets: list[str]) -> DenseConfig | None:
     d.update({k: base[k] for k in MODE_KEYS})  # the mode decides the residuals
     d.setdefault("save_maps", False)
     return DenseConfig.from_dict(d)
+
+
+def run_mode(seq, run_dir, mode: str, sets=(), slam_cfg=None, model_dir=None) -> dict:
+    """One run of ``mode`` on ``seq`` into ``run_dir`` (``sets``: as ``--set``); returns its metrics."""
+    return run_sequence(
+        seq,
+        run_dir,
+        slam_cfg,
+        progress=False,
+        plot=False,
+        dense=dense_config(mode, list(sets)),
+        model_dir=model_dir,
+        depth_source=oracle_depth_source(seq.depth, ORACLE_B) if mode in GROUND_TRUTH_MODES else None,
+    )
 
 
 def model_identity(model_dir: str | None) -> dict:
@@ -126,7 +135,9 @@ def model_identity(model_dir: str | None) -> dict:
     }
 
 
-def _row(preset: str, seed: int, mode: str, m: dict) -> dict:
+def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
+    """One row of the table from a run's ``metrics.json`` dict ``m``: ATE [m], FPS, keyframes, decoder runs, the
+    drift found at a relocalisation [m] and the depth metrics of (a) sparse points, (b) prior, (c) optimised."""
     dm = m.get("depth_metrics") or {}
     r = {
         "preset": preset,
@@ -254,8 +265,8 @@ def main(argv: list[str] | None = None) -> int:
         help="exported network folder (prior.onnx, decoder.onnx, manifest.json) for the dense modes; default: the "
         "shipped model",
     )
-    ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench_dense"), help="sequence cache folder")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_dense"))
+    ap.add_argument("--data", default=str(REPO / "data" / "sim" / "bench_dense"), help="sequence cache folder")
+    ap.add_argument("--out", default=str(REPO / "outputs" / "bench_dense"))
     ap.add_argument(
         "--resume",
         action="store_true",
@@ -264,18 +275,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     run_args = {k: v for k, v in vars(args).items() if k != "resume"}
-    make_config("default", args.slam_set)  # a bad override fails here, before any rendering
+    slam_cfg = make_config("default", args.slam_set)  # a bad override fails here, before any rendering
     model = model_identity(args.model)  # so does a missing or malformed model folder
     logging.basicConfig(level=logging.ERROR)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    machine = {
-        "cpu": cpu_model(),  # SLAM runs are chaotic: another CPU's floating point gives other trajectories
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
-        "python": platform.python_version(),
-        "data": "synthetic (sim/)",
-    }
+    machine = slam_machine(data="synthetic (sim/)")
     done = resumable_rows(out / "bench_dense.json", run_args, machine) if args.resume else {}
     rows = []
     res = {
@@ -297,17 +302,8 @@ def main(argv: list[str] | None = None) -> int:
                 root = root or sequence(Path(args.data), preset, args.duration, seed, args.scale)
                 t0 = time.perf_counter()
                 seq = read_euroc(root)
-                m = run_sequence(
-                    seq,
-                    out / f"{preset}_s{seed}_{mode}",
-                    make_config("default", args.slam_set),
-                    progress=False,
-                    plot=False,
-                    dense=_dense_cfg(mode, args.set),
-                    model_dir=args.model,
-                    depth_source=oracle_depth_source(seq.depth, ORACLE_B) if mode in GROUND_TRUTH_MODES else None,
-                )
-                rows.append(_row(preset, seed, mode, m))
+                m = run_mode(seq, out / f"{preset}_s{seed}_{mode}", mode, args.set, slam_cfg, args.model)
+                rows.append(run_row(preset, seed, mode, m))
                 r = rows[-1]
                 print(
                     f"bench_dense: {preset} seed {seed} {mode}: ATE {r['ate']:.4f} m, {r['fps']:.1f} FPS, "

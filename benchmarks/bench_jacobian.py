@@ -31,15 +31,12 @@ into ``--out`` (default ``benchmarks/results/``).
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo root: `benchmarks` is not installed
-
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 
 def fd_jacobian(

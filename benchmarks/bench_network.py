@@ -38,15 +38,12 @@ import argparse
 import dataclasses
 import hashlib
 import itertools
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo root: `benchmarks` is not installed
-
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 OPTIMIZATIONS = ("all", "basic", "disable")
 

@@ -16,22 +16,17 @@ import argparse
 import json
 import logging
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from benchmarks.common import cpu_model  # noqa: E402
-from runtime.io.euroc import read_euroc  # noqa: E402
-from runtime.run import run_sequence  # noqa: E402
-from runtime.slam import SlamConfig  # noqa: E402
-from sim.cache import cached_sequence as default_sequence  # noqa: E402
+from benchmarks.common import REPO, slam_machine
+from runtime.io.euroc import read_euroc
+from runtime.run import run_sequence
+from runtime.slam import SlamConfig
+from sim.cache import cached_sequence as default_sequence
 
 STAGES = (
     "read",
@@ -213,21 +208,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-imu-noise", action="store_true", help="exact IMU (default: noise on)")
     ap.add_argument("--runtime", default="default", help="conf/slam/runtime/<name>.yaml preset")
     ap.add_argument("--set", nargs="*", default=[], help="overrides key=value of the runtime config")
-    ap.add_argument("--data", default=str(ROOT / "data" / "sim" / "bench"), help="sequence cache folder")
-    ap.add_argument("--out", default=str(ROOT / "outputs" / "bench_slam"))
+    ap.add_argument("--data", default=str(REPO / "data" / "sim" / "bench"), help="sequence cache folder")
+    ap.add_argument("--out", default=str(REPO / "outputs" / "bench_slam"))
     ap.add_argument("--detectors", action="store_true", help="compare gftt / fast / orb instead")
     ap.add_argument("--detector-frames", type=int, default=400)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    machine = {
-        "cpu": cpu_model(),  # SLAM runs are chaotic: another CPU's floating point gives other trajectories
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
-        "python": platform.python_version(),
-        "loadavg_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
-    }
+    machine = slam_machine(loadavg_start=os.getloadavg() if hasattr(os, "getloadavg") else None)
     if args.detectors:
         res = detector_study(args)
         (out / "bench_detectors.json").write_text(

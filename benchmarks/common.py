@@ -1,8 +1,8 @@
 """Helpers of the Jacobian and network benchmarks: machine info, JSON, tables, timing, models, data.
 
-The benchmark scripts put the repository root on ``sys.path`` and import this module as ``benchmarks.common``
-(``benchmarks/`` is not an installed package). Everything here may import torch: benchmarks compare the ONNX
-runtime with torch on the same weights.
+The benchmark scripts, notebooks and tests import this module as ``benchmarks.common`` (``benchmarks`` is an
+installed package). Everything here may import torch: benchmarks compare the ONNX runtime with torch on the same
+weights.
 
 Model sources (:func:`resolve_model`), in order:
 
@@ -106,6 +106,49 @@ def machine_info(**threads) -> dict:
         "torch_imported_before_policy": _TORCH_BEFORE_POLICY,
         **threads,
     }
+
+
+def slam_machine(**extra) -> dict:
+    """Machine fields of a SLAM benchmark's JSON (no torch), then ``extra``. The CPU model comes first: SLAM runs
+    are chaotic, another CPU's floating point gives other trajectories."""
+    return {
+        "cpu": cpu_model(),
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        **extra,
+    }
+
+
+def start_notebook(out: str | Path) -> tuple[Path, Path, float]:
+    """Set a notebook up: the repository root as the working directory, its output folder, inline figure size.
+
+    The root is found at or above the working directory (a notebook's kernel may start in ``notebooks/`` or in
+    the root); the notebooks' relative paths (``OUT``, ``DATA``) are relative to it. Prints both folders.
+
+    Args:
+        out: the output folder, relative to the root (or absolute); created.
+
+    Returns:
+        ``(repo, out, t_start)``: the root, the output folder (absolute) and the start time (``time.time()``).
+
+    Raises:
+        RuntimeError: the working directory is not inside the dit-slam repository.
+    """
+    import matplotlib
+
+    repo = Path.cwd().resolve()
+    while not (repo / "pyproject.toml").is_file():
+        if repo.parent == repo:
+            raise RuntimeError("run this notebook from inside the dit-slam repository")
+        repo = repo.parent
+    os.chdir(repo)
+    matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
+    out_dir = (repo / out).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.time()
+    print(f"repository {repo}\noutputs    {out_dir}")
+    return repo, out_dir, t_start
 
 
 def describe_machine(m: dict) -> str:

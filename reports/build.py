@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results"
 README = REPO / "reports" / "README.md"
 
-__all__ = ["build", "source_files", "file_date", "main"]
+__all__ = ["build", "records", "source_files", "file_date", "main"]
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -675,6 +675,17 @@ def source_files() -> list[Path]:
     return [f for f in files if f.is_file()]
 
 
+def records() -> list[tuple[str, str]]:
+    """The hand-written records beside the report (``reports/*.md`` but the README): ``[(file name, title)]``,
+    the title being the page's first ``# `` heading."""
+    out = []
+    for f in sorted(README.parent.glob("*.md")):
+        if f != README:
+            title = next((ln[2:].strip() for ln in f.read_text().splitlines() if ln.startswith("# ")), f.stem)
+            out.append((f.name, title))
+    return out
+
+
 def build() -> str:
     """The report's Markdown text."""
     parts = [
@@ -695,6 +706,9 @@ def build() -> str:
         "[SLAM](#sparse-vi-slam-accuracy-and-speed) · notebooks: "
         "[01](../notebooks/01_depth_modalities.ipynb), [02](../notebooks/02_code_jacobian.ipynb), "
         "[03](../notebooks/03_trajectories.ipynb), [04](../notebooks/04_textureless.ipynb)",
+        "",
+        "Records written by hand beside this report (the history behind these figures): "
+        + " · ".join(f"[{title}]({name})" for name, title in records()),
         "",
     ]
     for section in (_table1, _table3, _coast, _jacobian, _slam):

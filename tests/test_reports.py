@@ -58,3 +58,12 @@ def test_report_helpers_known_answers():
     assert build._machine(None) == "not recorded"
     t = build._table(["a", "b"], [["1", "2"]])
     assert t == "| a | b |\n|---|---|\n| 1 | 2 |"
+
+
+def test_the_hand_written_records_are_linked():
+    build = _build_module()
+    names = [name for name, _ in build.records()]
+    assert {"ablations.md", "status.md"} <= set(names) and "README.md" not in names
+    text = build.build()
+    for name, title in build.records():
+        assert f"[{title}]({name})" in text

@@ -64,25 +64,14 @@ FORCE = False  # re-train cells whose eval_depth.json exists already
 # %%
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
-REPO = Path.cwd().resolve()
-while not (REPO / "pyproject.toml").is_file():  # the kernel may start in notebooks/ or in the repository root
-    if REPO.parent == REPO:
-        raise RuntimeError("run this notebook from inside the dit-slam repository")
-    REPO = REPO.parent
-os.chdir(REPO)
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
 import hydra
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
-from benchmarks.common import cpu_model
+from benchmarks.common import cpu_model, start_notebook
 from IPython.display import Image, Markdown, display
 from runtime.io.nyu import list_nyu_h5, read_nyu_h5
 from runtime.network import DepthNetwork, default_model_dir
@@ -94,11 +83,7 @@ from train.data import ensure_synthetic_nyu
 from train.evaluate import load_network
 from train.metrics import DepthMetrics, format_table, image_metrics
 
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
+REPO, out, t_start = start_notebook(OUT)
 print(f"machine    {cpu_model()}, {os.cpu_count()} cores, load {os.getloadavg()}, torch {torch.__version__}")
 
 # %% [markdown]

@@ -69,31 +69,16 @@ SEED = 0
 # %%
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
-REPO = Path.cwd().resolve()
-while not (REPO / "pyproject.toml").is_file():  # the kernel may start in notebooks/ or in the repository root
-    if REPO.parent == REPO:
-        raise RuntimeError("run this notebook from inside the dit-slam repository")
-    REPO = REPO.parent
-os.chdir(REPO)
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_jacobian, bench_network, common
 from IPython.display import Image, Markdown, display
 from runtime.network import default_model_dir
 
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
+REPO, out, t_start = common.start_notebook(OUT)
 print(f"machine    {common.cpu_model()}, {os.cpu_count()} cores, load {os.getloadavg()}")
 
 # %% [markdown]

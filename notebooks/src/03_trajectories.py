@@ -9,8 +9,8 @@
 # Here the same ablation runs on the synthetic `textured` and `whitewall` sequences of `sim/` (60 s,
 # EuRoC's camera and IMU at 752x480 / 200 Hz, IMU noise, three seeds each; `whitewall` hovers 6 s in front
 # of a bare wall, see notebook 04), through the functions of the Table 3 benchmark
-# (`benchmarks/bench_dense.py`: `sequence` renders and caches the sequences, `MODES` and `_dense_cfg` give
-# each mode's `DenseConfig` on top of the package defaults, `_row` / `fmt_table` / `bars` tabulate) and
+# (`benchmarks/bench_dense.py`: `sequence` renders and caches the sequences, `MODES` and `dense_config` give
+# each mode's `DenseConfig` on top of the package defaults, `run_row` / `fmt_table` / `bars` tabulate) and
 # `runtime.run.run_sequence`, which writes each run's `trajectory.txt` (TUM) and `metrics.json`; the tables
 # and figures below are read back from those files. Besides ATE and FPS the table carries the depth RMSE of
 # Table 2 on the keyframes that held a code: (a) the sparse map points, (b) the network prior at c = 0,
@@ -20,7 +20,7 @@
 # 1, 2 of both presets, all four modes (24 runs, one after another; the fourth is the upper bound below), the shipped
 # depth model (`runtime/assets/default_model`, 128x128; the second one, 2026-11-25), the package's default
 # `DenseConfig` (printed below: `sigma_per_b` = 8√2, the depth-edge test `edge_rel` = 0.05, codes and depth factors
-# from `start_after_s` = 5 s after the first keyframe) and default `SlamConfig` (with `backend.smooth_coast`). The
+# from `start_after_s` = 5 s after the first keyframe) and default `SlamConfig` (the coast kept in the smoother). The
 # sequences were already cached in `DATA`. The committed run took 12 min (695 s in the notebook; 2026-11-25, AMD
 # EPYC, 2 cores shared with other jobs, `nice -n 5`). Runs on one machine are deterministic: the same seeds' runs
 # of `python benchmarks/bench_dense.py` on the same day and machine gave the same ATEs
@@ -76,37 +76,20 @@ import dataclasses
 import json
 import logging
 import os
-import sys
 import time
-from pathlib import Path
 
-REPO = Path.cwd().resolve()
-while not (REPO / "pyproject.toml").is_file():  # the kernel may start in notebooks/ or in the repository root
-    if REPO.parent == REPO:
-        raise RuntimeError("run this notebook from inside the dit-slam repository")
-    REPO = REPO.parent
-os.chdir(REPO)
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
-
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import cpu_model, run_provenance
+from benchmarks.common import cpu_model, run_provenance, start_notebook
 from IPython.display import Image, Markdown, display
 from runtime.eval import trajectory_metrics
 from runtime.io.euroc import read_euroc
 from runtime.io.tum import read_tum
-from runtime.run import run_sequence
 from runtime.slam import SlamConfig
 
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
+REPO, out, t_start = start_notebook(OUT)
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
 print(run_provenance(REPO))  # machine, date, and which code ran
 unknown = sorted(set(MODES) - set(bench_dense.MODES))
 if unknown:
@@ -120,7 +103,7 @@ if unknown:
 # Per-keyframe depth maps are not saved (`save_maps=False`, as in the benchmark).
 
 # %%
-dense_cfgs = {mode: bench_dense._dense_cfg(mode, list(DENSE_SET)) for mode in MODES}
+dense_cfgs = {mode: bench_dense.dense_config(mode, list(DENSE_SET)) for mode in MODES}
 for mode, cfg in dense_cfgs.items():
     if cfg is None:
         print(f"{mode:14s} SlamConfig() only")
@@ -158,9 +141,9 @@ for preset in PRESETS:
             if REUSE and saved.is_file() and same_settings(json.loads(saved.read_text()), seq, dense_cfgs[mode]):
                 m, how = json.loads(saved.read_text()), "reused"
             else:
-                m = run_sequence(seq, run_dir, SlamConfig(), progress=False, plot=False, dense=dense_cfgs[mode])
+                m = bench_dense.run_mode(seq, run_dir, mode, DENSE_SET)
                 how = f"{time.time() - t0:.0f} s"
-            rows.append(bench_dense._row(preset, seed, mode, m))
+            rows.append(bench_dense.run_row(preset, seed, mode, m))
             r = rows[-1]
             print(
                 f"{preset:9s} seed {seed} {mode:14s} ATE {1e3 * r['ate']:7.1f} mm  {r['fps']:5.1f} FPS  "
@@ -308,12 +291,13 @@ display(Image(filename=out / "fig10_trajectories.png"))
 
 # %%
 from benchmarks import bench_coast
+from runtime.diagnostics.coast import coast_row
 
 coast_rows = []
 if "whitewall" in PRESETS:
     for seed in SEEDS:
         runs = {mode: run_dirs["whitewall", seed, mode] for mode in MODES}
-        coast_rows.append(bench_coast.coast_row(roots["whitewall", seed], seed, runs))
+        coast_rows.append(coast_row(roots["whitewall", seed], seed, runs))
     print(bench_coast.fmt_tables(coast_rows))
 
 # %%

@@ -66,25 +66,13 @@ TEXTURED_BEFORE_S = 8.0  # the textured keyframe of the Fig. 4 comparison: this 
 import dataclasses
 import json
 import logging
-import os
-import sys
 import time
-from pathlib import Path
-
-REPO = Path.cwd().resolve()
-while not (REPO / "pyproject.toml").is_file():  # the kernel may start in notebooks/ or in the repository root
-    if REPO.parent == REPO:
-        raise RuntimeError("run this notebook from inside the dit-slam repository")
-    REPO = REPO.parent
-os.chdir(REPO)
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
 
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from benchmarks import bench_dense
-from benchmarks.common import run_provenance
+from benchmarks.common import run_provenance, start_notebook
 from IPython.display import Image, Markdown, display
 from runtime.dense import DenseConfig
 from runtime.dense.map import gt_depth_to_network
@@ -99,12 +87,8 @@ from runtime.render import align_se3, look_at, project_points, render_points
 from runtime.run import run_sequence
 from runtime.slam import SlamConfig
 
-matplotlib.rcParams.update({"figure.dpi": 90, "font.size": 9})
+REPO, out, t_start = start_notebook(OUT)
 logging.getLogger("runtime").setLevel(logging.ERROR)  # the runs' events (tracking lost, ...) stay in metrics.json
-out = (REPO / OUT).resolve()
-out.mkdir(parents=True, exist_ok=True)
-t_start = time.time()
-print(f"repository {REPO}\noutputs    {out}")
 print(run_provenance(REPO))  # machine, date, and which code ran
 
 # %% [markdown]

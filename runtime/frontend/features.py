@@ -1,16 +1,10 @@
 """Corner detection spread over the image by grid bucketing.
 
-Three detectors are offered (``fast``, ``gftt`` = Shi-Tomasi, ``orb``); ``benchmarks/bench_slam.py
---detectors``
-measures their time and track quality. On the synthetic ``textured`` sequence (seed 0, 752x480, 2 shared
-cores)
-it measured per detection FAST 0.95 ms, ORB 7.5 ms, GFTT 12.6 ms (with the min-eigenvalue floor below), mean
-track
-life 78 / 79 / 71 frames, and the same SLAM accuracy (ATE 3.0-3.5 mm): FAST is the default. Its threshold is
-absolute, so a bare wall's sensor noise yields no corners (GFTT's quality level is relative to the image's
-best
-corner and needs the ``min_eig`` floor for that). Detection runs on the raw (distorted) image; the tracker
-undistorts the points.
+Three detectors are offered (``fast``, ``gftt`` = Shi-Tomasi, ``orb``); ``benchmarks/bench_slam.py --detectors``
+measures their time and track quality (figures in ``reports/ablations.md``); FAST is the default, the cheapest
+with the longest tracks. Its threshold is absolute, so a bare wall's sensor noise yields no corners (GFTT's
+quality level is relative to the image's best corner and needs the ``min_eig`` floor for that). Detection runs on
+the raw (distorted) image; the tracker undistorts the points.
 """
 
 from __future__ import annotations
@@ -25,9 +19,7 @@ import numpy as np
 class FeatureConfig:
     """Feature detection settings (pixels of the raw camera image)."""
 
-    detector: str = (
-        "fast"  # fast | gftt | orb (fast: measured cheapest with the longest tracks, see module doc)
-    )
+    detector: str = "fast"  # fast | gftt | orb (fast: measured cheapest with the longest tracks, see module doc)
     max_features: int = 180  # total tracked features to maintain
     grid_cols: int = 6  # bucketing grid
     grid_rows: int = 4

@@ -37,12 +37,12 @@ def test_an_unknown_runtime_key_is_refused_before_anything_is_rendered(tmp_path)
 
 def test_dense_overrides_leave_the_mode_its_residuals_and_parse_numbers():
     sets = ["factors.sigma_per_b=3", "use_depth_residual=true", "factors.edge_rel=5e-2"]
-    cfg = bench_dense._dense_cfg("dense_gt_eq14", sets)
+    cfg = bench_dense.dense_config("dense_gt_eq14", sets)
     assert cfg.factors.sigma_per_b == 3.0 and cfg.factors.edge_rel == pytest.approx(0.05)  # "5e-2": a number
     assert cfg.use_depth_residual is False and cfg.use_consistency and "dense_gt_eq14" in bench_dense.GROUND_TRUTH_MODES
-    assert bench_dense._dense_cfg("dense_gt_eq14", []).factors.sigma_per_b == pytest.approx(2**0.5)  # the mode's
-    assert bench_dense._dense_cfg("sparse", ["factors.edge_rel=0.05"]) is None
-    net = bench_dense._dense_cfg("dense_eq13", ["start_after_s=5"])
+    assert bench_dense.dense_config("dense_gt_eq14", []).factors.sigma_per_b == pytest.approx(2**0.5)  # the mode's
+    assert bench_dense.dense_config("sparse", ["factors.edge_rel=0.05"]) is None
+    net = bench_dense.dense_config("dense_eq13", ["start_after_s=5"])
     assert not net.use_consistency and net.start_after_s == 5.0 and "dense_eq13" not in bench_dense.GROUND_TRUTH_MODES
 
 

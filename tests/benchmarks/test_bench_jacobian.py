@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from tests.benchmarks.conftest import load_script, standin_args
-
-bench = load_script("bench_jacobian")
+from benchmarks import bench_jacobian as bench
+from tests.benchmarks.conftest import standin_args
 
 
 def test_delta_grid_holds_exact_decades():

@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from tests.benchmarks.conftest import load_script, standin_args
-
-bench = load_script("bench_network")
+from benchmarks import bench_network as bench
+from tests.benchmarks.conftest import standin_args
 
 
 def test_session_configs_cover_the_sweep():

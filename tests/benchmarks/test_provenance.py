@@ -2,20 +2,10 @@
 
 import re
 import subprocess
-import sys
 
 import pytest
 
-from tests.benchmarks.conftest import ROOT
-
-
-@pytest.fixture
-def run_provenance():
-    if str(ROOT) not in sys.path:  # benchmarks/ is not an installed package
-        sys.path.insert(0, str(ROOT))
-    from benchmarks.common import run_provenance
-
-    return run_provenance
+from benchmarks.common import run_provenance
 
 
 def _git(repo, *args):
@@ -24,7 +14,7 @@ def _git(repo, *args):
     )
 
 
-def test_run_provenance_names_the_commit_and_uncommitted_code(tmp_path, run_provenance):
+def test_run_provenance_names_the_commit_and_uncommitted_code(tmp_path):
     (tmp_path / "runtime").mkdir()
     (tmp_path / "runtime" / "a.py").write_text("x = 1\n")
     (tmp_path / "notes.txt").write_text("n\n")
@@ -43,7 +33,7 @@ def test_run_provenance_names_the_commit_and_uncommitted_code(tmp_path, run_prov
     assert run_provenance(tmp_path).splitlines()[2] == f"code       commit {sha} + uncommitted changes in runtime/a.py"
 
 
-def test_run_provenance_without_a_repository(tmp_path, run_provenance):
+def test_run_provenance_without_a_repository(tmp_path):
     if subprocess.run(["git", "-C", str(tmp_path), "rev-parse"], capture_output=True).returncode == 0:
         pytest.skip("tmp_path lies inside a git repository")
     assert run_provenance(tmp_path).splitlines()[2] == "code       commit ?"

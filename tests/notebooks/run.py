@@ -6,7 +6,7 @@
 Parameters (``-p NAME=VALUE``, the value read as a Python literal, else as a string) go into a new cell tagged
 ``injected-parameters`` right after the cell tagged ``parameters``, so that they override its defaults (as
 papermill does). The kernel is ``python3`` (the interpreter running this module, i.e. the venv), started in
-the repository root with the repository on ``PYTHONPATH`` and ``OMP_WAIT_POLICY=PASSIVE``; a cell error
+the repository root with ``OMP_WAIT_POLICY=PASSIVE`` (the code comes from the installed packages); a cell error
 stops the run and is reported with the cell's number (the partly executed notebook is still written).
 """
 
@@ -57,7 +57,6 @@ def inject_parameters(nb: nbformat.NotebookNode, params: dict) -> nbformat.Noteb
 
 def kernel_env(extra: dict | None = None) -> dict:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH")) if p)
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     env["MPLBACKEND"] = "module://matplotlib_inline.backend_inline"  # figures shown inline AND saved
     env.update(extra or {})

@@ -141,7 +141,7 @@ def _run_frames(system: SlamSystem, seq, n: int, recorder, progress: bool) -> No
             bar.update(1)
             if i % 20 == 0:
                 bar.set_postfix(
-                    kf=len(system.map.history), lm=len(system.map.landmarks), st=rec.status if rec else "init"
+                    kf=len(system.map.history), lm=system.map.n_landmarks, st=rec.status if rec else "init"
                 )
     if bar is not None:
         bar.close()

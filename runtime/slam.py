@@ -305,7 +305,7 @@ class SlamSystem:
     def _update_lost(self, ts: int, n_lm: int) -> None:
         """Visual tracking lost (too few landmarks tracked) or regained; a long loss asks for relocalisation."""
         c = self.cfg
-        if n_lm < c.lost_min_landmarks and not self.lost and self.map.landmarks:
+        if n_lm < c.lost_min_landmarks and not self.lost and self.map.n_landmarks:
             self.lost = True
             self.lost_since = ts
             self.event(ts, f"visual tracking lost ({n_lm} landmarks tracked): coasting on the IMU")

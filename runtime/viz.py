@@ -57,7 +57,7 @@ class RerunRecorder:
             rec.log("world/camera/image", rr.Image(image).compress(jpeg_quality=70))
         f = system.tracker.current(ts)
         if f.ids.size:
-            is_lm = np.array([int(j) in system.map.landmarks for j in f.ids], dtype=bool)
+            is_lm = np.array([system.map.is_landmark(j) for j in f.ids], dtype=bool)
             colors = np.where(is_lm[:, None], [[40, 220, 60]], [[240, 160, 30]]).astype(np.uint8)
             rec.log("world/camera/image/tracks", rr.Points2D(f.uv, colors=colors, radii=2.0))
         if record is None:

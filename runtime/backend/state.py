@@ -106,6 +106,11 @@ class MapState:
         """The window's keyframe ``kf_id`` (active or anchor); KeyError when it is not in the window."""
         return self.keyframes[kf_id]
 
+    @property
+    def n_landmarks(self) -> int:
+        """Landmarks in the window."""
+        return len(self.landmarks)
+
     def is_landmark(self, lm_id: int) -> bool:
         """Whether track ``lm_id`` is a landmark of the window."""
         return int(lm_id) in self.landmarks

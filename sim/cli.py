@@ -2,6 +2,7 @@
 
     dit-sim euroc out=DIR preset=textured|whitewall duration=SECONDS seed=S imu_noise=true|false
     dit-sim nyu out=DIR n_train=N n_val=M seed=S
+    dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
 
 The first bare word selects the job (it is turned into the override ``job=...``); everything else is a Hydra
 override of ``conf/sim.yaml`` (``--cfg job`` prints the composed config).
@@ -19,7 +20,7 @@ from omegaconf import DictConfig
 
 __all__ = ["JOBS", "main"]
 
-JOBS = ("euroc", "nyu")
+JOBS = ("euroc", "nyu", "imu")
 
 
 def _euroc(cfg: DictConfig) -> str:
@@ -44,8 +45,7 @@ def _euroc(cfg: DictConfig) -> str:
         f"  {mav0 / 'cam0'}: {info['frames']} frames {w}x{h} grey @ {info['cam_rate_hz']} Hz "
         "(data.csv, data/, sensor.yaml)",
         f"  {mav0 / 'depth0'}: {info['frames']} depth PNGs (uint16, metres * 5000, 0 = invalid)",
-        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, "
-        f"imu_noise={info['imu_noise']}",
+        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, imu_noise={info['imu_noise']}",
         f"  {mav0 / 'state_groundtruth_estimate0'}: {info['imu_samples']} states (p, q wxyz, v, biases)",
         f"  {root / 'sim_info.json'}: preset={info['preset']} seed={info['seed']} rest={info['rest_s']} s",
     ]
@@ -77,15 +77,50 @@ def _nyu(cfg: DictConfig) -> str:
     return f"dit-sim nyu: wrote {root}\n" + "\n".join(lines)
 
 
+def _imu(cfg: DictConfig) -> str:
+    from sim.complete import complete_imu
+    from sim.imu import FLIGHT_IMU, ImuNoise
+
+    if cfg.source is None:
+        raise ValueError("dit-sim imu needs source=DIR (an EuRoC-layout sequence with images and ground truth)")
+    out = cfg.out if cfg.out is not None else f"data/sim/imu_{Path(str(cfg.source)).resolve().name}"
+    noise = None
+    if cfg.imu_sensor is not None:
+        from runtime.io.euroc import read_imu_yaml
+
+        ip = read_imu_yaml(cfg.imu_sensor)
+        noise = ImuNoise(ip.gyro_noise_density, ip.gyro_random_walk, ip.accel_noise_density, ip.accel_random_walk)
+    info = complete_imu(
+        cfg.source,
+        out,
+        seed=int(cfg.seed),
+        noise=noise,
+        errors=FLIGHT_IMU if bool(cfg.vibration) else None,
+        still=float(cfg.still),
+        ramp=float(cfg.ramp),
+    )
+    f = info["fit"]
+    mav0 = Path(out) / "mav0"
+    return (
+        f"dit-sim imu: wrote {out}\n"
+        f"  {mav0 / 'cam0'}: {info['frames']} frames linked from {info['source']} "
+        f"({info['repeated_first_frames']} repeats of the first image, still {info['still_s']:g} s, "
+        f"ramp {info['ramp_s']:g} s)\n"
+        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, vibration={info['vibration']}\n"
+        f"  {mav0 / 'state_groundtruth_estimate0'}: the fitted trajectory at the IMU timestamps\n"
+        f"  fit vs the source ground truth: position median {f['pos_err_median_mm']:.3f} mm "
+        f"(p95 {f['pos_err_p95_mm']:.3f}), rotation median {f['rot_err_median_deg']:.4f} deg "
+        f"(p95 {f['rot_err_p95_deg']:.4f})"
+    )
+
+
 @hydra.main(version_base="1.3", config_path="pkg://conf", config_name="sim")
 def _run(cfg: DictConfig) -> None:
     if cfg.job not in JOBS:
-        sys.exit(
-            f"dit-sim: unknown job {cfg.job!r}; expected one of {', '.join(JOBS)} (e.g. `dit-sim euroc`)"
-        )
+        sys.exit(f"dit-sim: unknown job {cfg.job!r}; expected one of {', '.join(JOBS)} (e.g. `dit-sim euroc`)")
     t0 = time.perf_counter()
     try:
-        summary = _euroc(cfg) if cfg.job == "euroc" else _nyu(cfg)
+        summary = {"euroc": _euroc, "nyu": _nyu, "imu": _imu}[cfg.job](cfg)
     except (
         ValueError,
         FileExistsError,

@@ -1,6 +1,7 @@
 """``dit-sim``: render synthetic data in the real formats.
 
-    dit-sim euroc out=DIR preset=textured|whitewall duration=SECONDS seed=S imu_noise=true|false
+    dit-sim euroc out=DIR preset=textured|whitewall|flight|handheld|tabletop duration=SECONDS seed=S
+        [imu_noise=true|false] [realism=true|false] [ideal=true]
     dit-sim nyu out=DIR n_train=N n_val=M seed=S
     dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
 
@@ -37,6 +38,8 @@ def _euroc(cfg: DictConfig) -> str:
         scale=float(cfg.scale),
         workers=int(cfg.workers),
         noise_sigma=float(cfg.image_noise),
+        realism=None if cfg.realism is None else bool(cfg.realism),
+        ideal=bool(cfg.ideal),
     )
     info = json.loads((root / "sim_info.json").read_text())
     w, h = info["resolution"]

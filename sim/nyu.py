@@ -67,7 +67,9 @@ def _render_scene(job: tuple) -> int:
         T_w_c = random_viewpoints(scene, 1, rng)[0]
         img, depth = renderer.render(T_w_c, rng, noise_sigma, exposure=float(rng.uniform(0.85, 1.15)))
         with h5py.File(out_dir / f"{j:05d}.h5", "w") as f:
-            f.create_dataset("rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression)
+            f.create_dataset(
+                "rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression
+            )
             f.create_dataset("depth", data=depth.astype(np.float32), compression=compression)
     return n_frames
 
@@ -125,7 +127,9 @@ def write_nyu_dataset(
             names.append(name)
         scenes[split] = names
         (out / split).mkdir(parents=True, exist_ok=True)
-    run_jobs(jobs, _noop, (), _render_scene, workers, progress, "nyu", int(n_train) + int(n_val))  # a job per scene
+    run_jobs(
+        jobs, _noop, (), _render_scene, workers, progress, "nyu", int(n_train) + int(n_val)
+    )  # a job per scene
     info = {
         "generator": GENERATOR,
         "job": "nyu",

@@ -198,7 +198,9 @@ class TextureAtlas:
             hs.append(h)
             n += h * w
         data = np.ascontiguousarray(np.concatenate(flat, 0))
-        return TextureAtlas(data, np.asarray(offs, np.int64), np.asarray(ws, np.int32), np.asarray(hs, np.int32), texel)
+        return TextureAtlas(
+            data, np.asarray(offs, np.int64), np.asarray(ws, np.int32), np.asarray(hs, np.int32), texel
+        )
 
     @property
     def channels(self) -> int:

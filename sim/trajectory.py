@@ -53,9 +53,15 @@ def euler_to_R_w_c(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.n
     cp, sp = np.cos(pitch), np.sin(pitch)
     cr, sr = np.cos(roll), np.sin(roll)
     one, zero = np.ones_like(cy), np.zeros_like(cy)
-    Rz = np.stack([np.stack([cy, -sy, zero], -1), np.stack([sy, cy, zero], -1), np.stack([zero, zero, one], -1)], -2)
-    Ry = np.stack([np.stack([cp, zero, sp], -1), np.stack([zero, one, zero], -1), np.stack([-sp, zero, cp], -1)], -2)
-    Rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, cr, -sr], -1), np.stack([zero, sr, cr], -1)], -2)
+    Rz = np.stack(
+        [np.stack([cy, -sy, zero], -1), np.stack([sy, cy, zero], -1), np.stack([zero, zero, one], -1)], -2
+    )
+    Ry = np.stack(
+        [np.stack([cp, zero, sp], -1), np.stack([zero, one, zero], -1), np.stack([-sp, zero, cp], -1)], -2
+    )
+    Rx = np.stack(
+        [np.stack([one, zero, zero], -1), np.stack([zero, cr, -sr], -1), np.stack([zero, sr, cr], -1)], -2
+    )
     return Rz @ Ry @ Rx @ R_LEVEL
 
 
@@ -162,7 +168,9 @@ def _rates(traj: Trajectory, dt: float = 0.02) -> tuple[float, float, np.ndarray
     return float(speed.max()), float(ang.max()), p
 
 
-def whitewall_min_duration(t_rest: float = 2.5, t_ramp: float = 2.0, t_blend: float = 5.5, hold: float = 6.0) -> float:
+def whitewall_min_duration(
+    t_rest: float = 2.5, t_ramp: float = 2.0, t_blend: float = 5.5, hold: float = 6.0
+) -> float:
     """Shortest ``whitewall`` sequence [s]: rest, ramp, 1.5 s exploring, blend in, hold, blend out, 1 s."""
     return t_rest + t_ramp + 1.5 + 2 * t_blend + hold + 1.0
 
@@ -246,7 +254,9 @@ def make_trajectory(
     A = _sines(tau, ang_amp, ang_freq, ang_phase)
     ang_amp *= np.minimum(1.0, ang_cap / np.maximum(np.abs(A).max(0), 1e-9))[:, None]
     room = (hi - lo) * 0.98
-    for it in range(4):  # fit the offsets into the free region, then speed them up (higher frequencies) to target
+    for it in range(
+        4
+    ):  # fit the offsets into the free region, then speed them up (higher frequencies) to target
         S = _sines(tau, pos_amp, pos_freq, pos_phase)
         s_lo, s_hi = np.minimum(S.min(0), 0.0), np.maximum(S.max(0), 0.0)
         shrink = np.minimum(1.0, room / np.maximum(s_hi - s_lo, 1e-9))
@@ -283,5 +293,7 @@ def make_trajectory(
         if w > max_rate:
             traj.ang_amp = traj.ang_amp * (0.97 * max_rate / w)
     else:
-        raise RuntimeError(f"could not meet the speed / rate bounds for seed {seed} (speed {v:.2f}, rate {w:.2f})")
+        raise RuntimeError(
+            f"could not meet the speed / rate bounds for seed {seed} (speed {v:.2f}, rate {w:.2f})"
+        )
     return traj

@@ -21,4 +21,6 @@ def exact_seq(tmp_path_factory):
 def noisy_small_seq(tmp_path_factory):
     """Quarter-resolution textured sequence, 3 s, noisy IMU, seed 2 (layout and bias checks)."""
     out = tmp_path_factory.mktemp("euroc_noisy")
-    return write_euroc_sequence(out, "textured", duration=3.0, seed=2, imu_noise=True, progress=False, scale=0.25)
+    return write_euroc_sequence(
+        out, "textured", duration=3.0, seed=2, imu_noise=True, progress=False, scale=0.25
+    )

@@ -11,7 +11,9 @@ from sim.imu import so3_log_batch, synthesize_imu
 from sim.trajectory import smooth_step, whitewall_min_duration
 
 
-@pytest.mark.parametrize("preset,duration,seed", [("textured", 40.0, 0), ("textured", 40.0, 7), ("whitewall", 30.0, 3)])
+@pytest.mark.parametrize(
+    "preset,duration,seed", [("textured", 40.0, 0), ("textured", 40.0, 7), ("whitewall", 30.0, 3)]
+)
 def test_mav_like_bounds_and_clearance(preset, duration, seed):
     d = simulate_sequence(preset, duration, seed, imu_noise=False)
     speed = np.linalg.norm(d.v_w, axis=1)

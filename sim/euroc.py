@@ -167,6 +167,32 @@ def camera_physics_for(preset: str) -> CameraPhysics:
     return CameraPhysics(time_offset_s=0.003)
 
 
+def physics_jobs(
+    data: SequenceData, physics: CameraPhysics, duration: float, scale: float, rng: np.random.Generator
+) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
+    """Frame jobs with camera physics: poses at mid-exposure (+ time offset), motion, auto-exposure settings.
+
+    Returns:
+        ``(jobs, exposure_s, gain, illumination)``: a job per frame ``(k, ts, T_w_c, T_c1_c0, exposure, gain,
+        illumination)`` for :func:`render_job`, and the per-frame settings (F,).
+    """
+    t_f = data.frame_idx * (DT_NS * 1e-9) + physics.time_offset_s
+    T_w_c = data.trajectory.camera_T(t_f)
+    T_c1_c0 = np.linalg.inv(data.trajectory.camera_T(t_f + PHYSICS_DT)) @ T_w_c
+    illum = illumination(t_f, duration, physics, rng)
+    preview = Renderer(data.scene, scaled_camera(scale * 0.125))
+    previews = np.stack([preview.radiance(T)[0] for T in T_w_c])
+    exposure_s, gain = auto_exposure(previews, illum, physics)
+    frame_ts = data.ts[data.frame_idx]
+    jobs = [
+        (int(k), int(ts), T, Tr, float(e), float(g), float(li))
+        for k, ts, T, Tr, e, g, li in zip(
+            data.frame_idx, frame_ts, T_w_c, T_c1_c0, exposure_s, gain, illum, strict=True
+        )
+    ]
+    return jobs, exposure_s, gain, illum
+
+
 def _check_args(preset: str, duration: float, seed: int) -> None:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {PRESETS}")
@@ -342,6 +368,20 @@ def _render_frame(job: tuple) -> int:
 
     A job with camera physics also holds ``(T_c1_c0 over PHYSICS_DT, exposure [s], gain, illumination)``.
     """
+    k, ts = job[:2]
+    w = _WORKER
+    img, depth = render_job(job)
+    d = np.rint(depth.astype(np.float64) * DEPTH_SCALE)
+    d[(d > 65535) | ~np.isfinite(d)] = 0  # beyond 13.1 m: invalid
+    if not cv2.imwrite(str(w["cam_dir"] / f"{ts}.png"), img, PNG_PARAMS):
+        raise OSError(f"could not write {w['cam_dir'] / f'{ts}.png'}")
+    if not cv2.imwrite(str(w["depth_dir"] / f"{ts}.png"), d.astype(np.uint16), PNG_PARAMS):
+        raise OSError(f"could not write {w['depth_dir'] / f'{ts}.png'}")
+    return 1
+
+
+def render_job(job: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Image (uint8) and depth (float32 [m]) of one frame job, with the renderer :func:`_init_render` built."""
     k, ts, T_w_c = job[:3]
     w = _WORKER
     rng = np.random.default_rng(np.random.SeedSequence([w["seed"], 0xCA0, int(k)]))
@@ -353,13 +393,7 @@ def _render_frame(job: tuple) -> int:
         rad, depth = r.radiance(T_w_c)
         vel = pixel_velocity(depth, r.camera, (r.rx, r.ry), T_c1_c0, PHYSICS_DT)
         img = expose(rad, vel, exposure_s, gain, illum, phys, w["vig"], rng, phys.readout_s / r.camera.height)
-    d = np.rint(depth.astype(np.float64) * DEPTH_SCALE)
-    d[(d > 65535) | ~np.isfinite(d)] = 0  # beyond 13.1 m: invalid
-    if not cv2.imwrite(str(w["cam_dir"] / f"{ts}.png"), img, PNG_PARAMS):
-        raise OSError(f"could not write {w['cam_dir'] / f'{ts}.png'}")
-    if not cv2.imwrite(str(w["depth_dir"] / f"{ts}.png"), d.astype(np.uint16), PNG_PARAMS):
-        raise OSError(f"could not write {w['depth_dir'] / f'{ts}.png'}")
-    return 1
+    return img, depth
 
 
 def run_jobs(jobs: list, init, init_args: tuple, fn, workers: int, progress: bool, desc: str, total: int) -> None:
@@ -456,20 +490,7 @@ def write_euroc_sequence(
     T_w_c = data.T_w_b(data.frame_idx) @ EUROC_T_B_C0
     jobs = [(int(k), int(ts), T) for k, ts, T in zip(data.frame_idx, frame_ts, T_w_c, strict=True)]
     if physics is not None:
-        t_f = data.frame_idx * (DT_NS * 1e-9) + physics.time_offset_s
-        T_w_c = data.trajectory.camera_T(t_f)
-        T_w_c1 = data.trajectory.camera_T(t_f + PHYSICS_DT)
-        T_c1_c0 = np.linalg.inv(T_w_c1) @ T_w_c
-        illum = illumination(t_f, duration, physics, rng_cam)
-        preview = Renderer(data.scene, scaled_camera(scale * 0.125))
-        previews = np.stack([preview.radiance(T)[0] for T in T_w_c])
-        exposure_s, gain = auto_exposure(previews, illum, physics)
-        jobs = [
-            (int(k), int(ts), T, Tr, float(e), float(g), float(li))
-            for k, ts, T, Tr, e, g, li in zip(
-                data.frame_idx, frame_ts, T_w_c, T_c1_c0, exposure_s, gain, illum, strict=True
-            )
-        ]
+        jobs, exposure_s, gain, illum = physics_jobs(data, physics, duration, scale, rng_cam)
         rows = [
             f"{int(ts)},{float(e)!r},{float(g)!r},{float(li)!r}"
             for ts, e, g, li in zip(frame_ts, exposure_s, gain, illum, strict=True)

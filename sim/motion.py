@@ -166,6 +166,10 @@ def make_motion_trajectory(scene: Scene, duration: float, seed: int, preset: str
         ang = _random_sines(rng, 3, 0.15, 0.8, [0.9, 0.25, 0.2])
         ang[0][1:] = np.clip(ang[0][1:], -0.15, 0.15)
         ext = (hi - lo) * 0.98
+        target = np.array([1.3, 1.3, 0.3])
+        for _ in range(4):  # fit into the free region, then speed up (higher frequencies) back to the target
+            s_lo, s_hi = _fit_into(*pos, tau, ext)
+            pos[1][:] *= np.clip(target / np.sum(np.abs(pos[0]) * pos[1], 1), 1.0, 2.5 / pos[1].max(1))[:, None]
         s_lo, s_hi = _fit_into(*pos, tau, ext)
         center = lo - s_lo + rng.uniform(0, 1, 3) * np.maximum((hi - s_hi) - (lo - s_lo), 0.0)
         p_ground = np.array([center[0], center[1], 0.25])

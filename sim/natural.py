@@ -110,12 +110,15 @@ def make_natural_texture(
         return _clip(base * (1.0 + 0.025 * n))
     if style == "concrete":
         fine = pink_noise(rng, h, w, beta=0.6)[..., None]
-        img = base * (1.0 + 0.12 * n + 0.06 * fine)
+        img = np.ascontiguousarray(base * (1.0 + 0.25 * n + 0.08 * fine), dtype=np.float32)
+        _marks(rng, img, texel, 3.0, 0.06)  # stains, bolts, notices
         return _clip(img)
     if style == "metal":  # brushed: anisotropic streaks
         streak = cv2.blur(rng.standard_normal((h, w)).astype(np.float32), (max(3, int(0.3 / texel)), 1))
         streak /= max(float(streak.std()), 1e-6)
-        return _clip(base * (1.0 + 0.05 * n + 0.04 * streak[..., None]))
+        img = np.ascontiguousarray(base * (1.0 + 0.12 * n + 0.05 * streak[..., None]), dtype=np.float32)
+        _marks(rng, img, texel, 8.0, 0.05)  # rivets, labels, panel edges
+        return _clip(img)
     if style == "wood":
         period = float(rng.uniform(0.008, 0.02)) / texel  # ring spacing [texels]
         v = np.arange(h, dtype=np.float32)[:, None]
@@ -146,8 +149,8 @@ def make_natural_texture(
             img[y : y + lw] *= 0.6
         return _clip(img)
     # clutter: 1/f background plus printed marks at two scales
-    img = np.ascontiguousarray(base * (1.0 + 0.15 * n), dtype=np.float32)
-    _marks(rng, img, texel, 6.0 * clutter, 0.12)
-    _marks(rng, img, texel, 30.0 * clutter, 0.03)
+    img = np.ascontiguousarray(base * (1.0 + 0.3 * n), dtype=np.float32)
+    _marks(rng, img, texel, 15.0 * clutter, 0.12)
+    _marks(rng, img, texel, 90.0 * clutter, 0.03)
     img = cv2.GaussianBlur(img, (0, 0), 0.6)
     return _clip(img)

@@ -191,6 +191,32 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
             min(3.5, size[2] - 0.5),
         )
         furniture += _wall_items(rng, size, [0, 1, 2, 3], (0, 3), 2.5, windows=int(rng.integers(1, 3)))
+        for _ in range(int(rng.integers(6, 12))):  # pipes along the walls (horizontal) and up them (vertical)
+            wall = int(rng.integers(0, 4))
+            length = size[0] if wall in (0, 2) else size[1]
+            th = float(rng.uniform(0.08, 0.35))
+            gap = float(rng.uniform(0.05, band - th))
+            if rng.uniform() < 0.6:
+                z = float(rng.uniform(1.8, size[2] - 0.5))
+                s0 = float(rng.uniform(0.0, length * 0.5))
+                lo, hi = _wall_box(
+                    wall, s0, min(length, s0 + float(rng.uniform(2.0, length))), th, z, z + th, size, gap=gap
+                )
+            else:
+                s0 = float(rng.uniform(0.2, length - 0.5))
+                lo, hi = _wall_box(wall, s0, s0 + th, th, 0.0, float(rng.uniform(2.0, size[2])), size, gap=gap)
+            furniture.append(_box("pipe", lo, hi, "metal"))
+        for _ in range(int(rng.integers(4, 9))):  # ceiling light strips
+            x = float(rng.uniform(1.0, size[0] - 2.0))
+            y = float(rng.uniform(1.0, size[1] - 1.0))
+            furniture.append(
+                _box(
+                    "lamp",
+                    [x, y, size[2] - 0.06],
+                    [x + float(rng.uniform(0.8, 1.6)), y + 0.12, size[2] - 0.01],
+                    "window",
+                )
+            )
         for _ in range(int(rng.integers(2, 5))):  # pillars
             x = float(rng.choice([band + 0.3, size[0] - band - 0.7]))
             y = float(rng.uniform(band, size[1] - band - 0.4))
@@ -278,7 +304,7 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
     wall_ids = {(1, 0): 0, (0, 1): 1, (1, 1): 2, (0, 0): 3}  # (axis, side) -> wall number of _wall_box
     for b in range(len(names)):
         ext = hi[b] - lo[b]
-        obj_base = rng.uniform(0.15, 0.85, 3)
+        obj_base = rng.uniform(0.04, 0.9) * np.clip(1.0 + rng.uniform(-0.2, 0.2, 3), 0.0, 1.5)
         for axis in range(3):
             ua, va = FACE_UV_AXES[axis]
             for side in range(2):

@@ -2,7 +2,7 @@
 
     dit-sim euroc out=DIR preset=textured|whitewall|flight|handheld|tabletop duration=SECONDS seed=S
         [imu_noise=true|false] [realism=true|false] [ideal=true]
-    dit-sim nyu out=DIR n_train=N n_val=M seed=S
+    dit-sim nyu out=DIR n_train=N n_val=M seed=S [realism=true]
     dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
 
 The first bare word selects the job (it is turned into the override ``job=...``); everything else is a Hydra
@@ -70,6 +70,7 @@ def _nyu(cfg: DictConfig) -> str:
         progress=bool(cfg.progress),
         frames_per_scene=int(cfg.frames_per_scene),
         workers=int(cfg.workers),
+        realism=bool(cfg.realism) if cfg.realism is not None else False,
     )
     info = json.loads((root / "sim_info.json").read_text())
     lines = [

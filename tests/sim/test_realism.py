@@ -105,3 +105,20 @@ def test_ideal_flag_writes_exact_data(tmp_path):
     np.testing.assert_array_equal(seq.gyro, exact.gyro)
     np.testing.assert_array_equal(seq.gt.bg, 0.0)
     assert json.loads((a / "sim_info.json").read_text())["ideal"] is True
+
+
+def test_nyu_realism_option(tmp_path):
+    import h5py
+
+    from sim.nyu import write_nyu_dataset
+
+    root = write_nyu_dataset(
+        tmp_path / "nyu", n_train=1, n_val=1, seed=1, progress=False, frames_per_scene=1, realism=True
+    )
+    assert json.loads((root / "sim_info.json").read_text())["realism"] is True
+    files = sorted(root.glob("*/*/*.h5"))
+    assert len(files) == 2
+    with h5py.File(files[0]) as f:
+        rgb, depth = f["rgb"][:], f["depth"][:]
+    assert rgb.shape == (3, 480, 640) and rgb.dtype == np.uint8 and depth.shape == (480, 640)
+    assert 0.1 < depth.min() and depth.max() < 15.0 and 10 < rgb.mean() < 245

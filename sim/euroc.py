@@ -164,7 +164,7 @@ def camera_physics_for(preset: str) -> CameraPhysics:
     """Camera physics of a preset: EuRoC-like global shutter for MAV ones, a rolling shutter for hand-held ones."""
     if preset in ("handheld", "tabletop"):
         return CameraPhysics(readout_s=0.015, time_offset_s=-0.006, exposure_max_s=0.015)
-    return CameraPhysics(time_offset_s=0.003)
+    return CameraPhysics(time_offset_s=0.003, illum_range=(0.2, 0.7))  # a dim hall: long exposures, as EuRoC MH
 
 
 def physics_jobs(

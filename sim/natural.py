@@ -110,8 +110,8 @@ def make_natural_texture(
         return _clip(base * (1.0 + 0.025 * n))
     if style == "concrete":
         fine = pink_noise(rng, h, w, beta=0.6)[..., None]
-        img = np.ascontiguousarray(base * (1.0 + 0.25 * n + 0.08 * fine), dtype=np.float32)
-        _marks(rng, img, texel, 3.0, 0.06)  # stains, bolts, notices
+        img = np.ascontiguousarray(base * (1.0 + 0.3 * n + 0.1 * fine), dtype=np.float32)
+        _marks(rng, img, texel, 20.0, 0.06)  # stains, bolts, notices
         return _clip(img)
     if style == "metal":  # brushed: anisotropic streaks
         streak = cv2.blur(rng.standard_normal((h, w)).astype(np.float32), (max(3, int(0.3 / texel)), 1))

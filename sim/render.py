@@ -238,7 +238,7 @@ class Renderer:
             lx = [f32(sc.point_light[i]) - p[i] for i in range(3)]
             d2 = lx[0] * lx[0] + lx[1] * lx[1] + lx[2] * lx[2]
             cos = (n[:, 0] * lx[0] + n[:, 1] * lx[1] + n[:, 2] * lx[2]) / np.sqrt(d2 + f32(1e-9))
-            lit = f32(0.12) + f32(1.6) * np.maximum(cos, f32(0.0)) / (f32(1.0) + d2 / f32(sc.light_range**2))
+            lit = f32(0.08) + f32(1.8) * np.maximum(cos, f32(0.0)) / (f32(1.0) + d2 / f32(sc.light_range**2))
             gain = self.shade[ff] * np.where(self._emissive[ff], f32(1.0), lit)
         val = albedo * gain[:, None]
         val = val.reshape(H, W) if val.shape[1] == 1 else val.reshape(H, W, val.shape[1])

@@ -76,6 +76,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--no-mh05", action="store_true", help="skip the real MH_05 excerpt")
+    ap.add_argument(
+        "--sim-set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra dit-sim overrides, e.g. realism=false (a diagnostic: the scenes without sensor physics)",
+    )
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "bench_sim_baseline.json"))
     args = ap.parse_args(argv)
     rows = []
@@ -95,6 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
                         f"scale={args.scale:g}",
                         f"workers={args.workers}",
                         "progress=false",
+                        *args.sim_set,
                     ],
                     check=True,
                     capture_output=True,
@@ -102,7 +110,7 @@ def main(argv: list[str] | None = None) -> dict:
                 )
                 row = {
                     "data": "synthetic",
-                    "preset": preset,
+                    "preset": " ".join([preset, *args.sim_set]),
                     "seed": seed,
                     **run_slam(seq, d / f"slam_{preset}_{seed}"),
                 }
@@ -126,13 +134,13 @@ def main(argv: list[str] | None = None) -> dict:
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     print(f"\nsparse dit-slam baseline ({_cpu()}; synthetic: {args.duration:g} s, scale {args.scale:g})")
-    print(f"{'sequence':24s} {'seed':>4s} {'ATE SE3 [m]':>12s} {'init at [s]':>11s} {'posed':>9s}  note")
+    print(f"{'sequence':32s} {'seed':>4s} {'ATE SE3 [m]':>12s} {'init at [s]':>11s} {'posed':>9s}  note")
     for r in rows:
         ate = f"{r['ate_se3_rmse_m']:.4f}" if "ate_se3_rmse_m" in r else "-"
         init = f"{r['initialised_at_s']:.1f}" if r.get("initialised_at_s") is not None else "-"
         posed = f"{r.get('frames_with_pose', 0)}/{r.get('frames', 0)}"
-        print(f"{r['preset']:24s} {r['seed']:4d} {ate:>12s} {init:>11s} {posed:>9s}  {r.get('error') or ''}")
-    res = {"cpu": _cpu(), "duration_s": args.duration, "scale": args.scale, "rows": rows}
+        print(f"{r['preset']:32s} {r['seed']:4d} {ate:>12s} {init:>11s} {posed:>9s}  {r.get('error') or ''}")
+    res = {"cpu": _cpu(), "duration_s": args.duration, "scale": args.scale, "sim_set": args.sim_set, "rows": rows}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
     print(f"wrote {args.out}")

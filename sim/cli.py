@@ -50,8 +50,13 @@ def _euroc(cfg: DictConfig) -> str:
         f"  {mav0 / 'depth0'}: {info['frames']} depth PNGs (uint16, metres * 5000, 0 = invalid)",
         f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, imu_noise={info['imu_noise']}",
         f"  {mav0 / 'state_groundtruth_estimate0'}: {info['imu_samples']} states (p, q wxyz, v, biases)",
-        f"  {root / 'sim_info.json'}: preset={info['preset']} seed={info['seed']} rest={info['rest_s']} s",
+        f"  {root / 'sim_info.json'}: preset={info['preset']} seed={info['seed']} rest={info['rest_s']:.3g} s",
     ]
+    if info.get("realism") is not None:
+        lines.append(
+            f"  realism={info['realism']} ideal={info['ideal']}"
+            + (" (camera physics: sim_frames.csv, sim_info.json camera_physics)" if info["realism"] else "")
+        )
     if info["whitewall_window_s"] is not None:
         a, b = info["whitewall_window_s"]
         lines.append(f"  white-wall window: {a:.1f} s .. {b:.1f} s after the first frame")

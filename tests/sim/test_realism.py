@@ -122,3 +122,16 @@ def test_nyu_realism_option(tmp_path):
         rgb, depth = f["rgb"][:], f["depth"][:]
     assert rgb.shape == (3, 480, 640) and rgb.dtype == np.uint8 and depth.shape == (480, 640)
     assert 0.1 < depth.min() and depth.max() < 15.0 and 10 < rgb.mean() < 245
+
+
+def test_textured_with_realism_writes_physics(tmp_path):
+    root = write_euroc_sequence(
+        tmp_path / "t", "textured", duration=3.0, seed=5, progress=False, scale=0.125, realism=True
+    )
+    info = json.loads((root / "sim_info.json").read_text())
+    assert info["realism"] is True and info["time_offset_s"] == pytest.approx(0.003)
+    seq = read_euroc(root)
+    assert seq.camera.fx != EUROC_CAM0.fx / 8  # the written calibration is off
+    assert np.abs(seq.gt.bg[0]).max() > 0.005 and seq.gyro[:400].std(0).min() > 0.01  # real IMU
+    img = seq.image(30)
+    assert img.dtype == np.uint8 and 5 < img.mean() < 250

@@ -4,7 +4,7 @@
   the middle of the hall, then EuRoC-like motion: sums of sines up to about 2 m/s and 1.5 rad/s, the camera
   roughly level with pitch / roll sways. Smooth (C-infinity) throughout.
 - ``handheld``: moving from the first sample on (no still period), up to about 1.2 m/s and 1.2 rad/s.
-- ``tabletop``: moving from the first sample, on a sphere section 0.4-0.95 m around the table centre, looking at
+- ``tabletop``: moving from the first sample, on a sphere section about 0.4-1 m around the table centre, looking at
   points of the table: the objects stay 0.2-1.5 m away.
 
 The classes share :class:`sim.trajectory.Trajectory`'s interface (``camera_pose``, ``camera_T``, ``body_pose``,
@@ -141,6 +141,9 @@ def _fit_into(amp, freq, phase, tau, extent):
     return lo * shrink, hi * shrink
 
 
+_BRANCH = {"flight": 1, "handheld": 2, "tabletop": 3}  # seed-sequence branch per preset
+
+
 def make_motion_trajectory(scene: Scene, duration: float, seed: int, preset: str) -> MotionTrajectory:
     """Random trajectory of ``preset`` (``flight``, ``handheld``, ``tabletop``) in ``scene``.
 
@@ -153,11 +156,9 @@ def make_motion_trajectory(scene: Scene, duration: float, seed: int, preset: str
     Returns:
         The :class:`MotionTrajectory`.
     """
-    rng = np.random.default_rng(
-        np.random.SeedSequence(
-            [int(seed), 0x30710, hash(preset) % 1000 if False else {"flight": 1, "handheld": 2, "tabletop": 3}[preset]]
-        )
-    )
+    if preset not in _BRANCH:
+        raise ValueError(f"unknown motion preset {preset!r}; expected flight, handheld or tabletop")
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x30710, _BRANCH[preset]]))
     lo, hi = scene.free_lo, scene.free_hi
     tau = np.arange(-2.0, duration + 2.05, 0.02)
     if preset == "flight":

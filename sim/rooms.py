@@ -245,7 +245,7 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
         furniture += _wall_items(rng, size, [0, 1, 2, 3], (0, 2), 1.3, windows=1)
         free_lo = np.array([band + clearance, band + clearance, 1.0])
         free_hi = np.array([size[0] - band - clearance, size[1] - band - clearance, min(size[2] - 0.6, 1.9)])
-        styles = {"wall": "paint", "floor": "wood", "ceiling": "paint", "plain_walls": 2}
+        styles = {"wall": "paint", "floor": "wood", "ceiling": "paint", "plain_walls": 1}
         tex = texel or 0.005
         light = np.array([size[0] / 2, size[1] / 2, size[2] - 0.2])
         light_range = 3.5
@@ -259,7 +259,7 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
         cx, cy = size[0] / 2, size[1] / 2
         tw, td, top = float(rng.uniform(1.0, 1.4)), float(rng.uniform(0.7, 0.9)), float(rng.uniform(0.72, 0.78))
         furniture.append(
-            _box("table_top", [cx - tw / 2, cy - td / 2, top - 0.04], [cx + tw / 2, cy + td / 2, top], "wood")
+            _box("table_top", [cx - tw / 2, cy - td / 2, top - 0.04], [cx + tw / 2, cy + td / 2, top], "clutter")
         )
         for sx in (-1, 1):
             for sy in (-1, 1):
@@ -287,7 +287,7 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
                     break
         free_lo = np.array([cx - tw / 2 - 0.5, cy - td / 2 - 0.5, top + 0.35])
         free_hi = np.array([cx + tw / 2 + 0.5, cy + td / 2 + 0.5, top + 0.9])
-        styles = {"wall": "paint", "floor": "wood", "ceiling": "paint", "plain_walls": 2}
+        styles = {"wall": "paint", "floor": "wood", "ceiling": "paint", "plain_walls": 1}
         tex = texel or 0.003
         light = np.array([cx + float(rng.uniform(-0.5, 0.5)), cy + float(rng.uniform(-0.5, 0.5)), size[2] - 0.3])
         light_range = 2.5
@@ -318,7 +318,7 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
                         if wall_ids[(axis, side)] in plain:
                             style = "paint"
                         elif style == "paint":
-                            style, clutter = "clutter", 0.3  # a wall with posters, notes, switches
+                            style, clutter = "clutter", 0.8  # a wall with posters, notes, switches
                 elif box_style[b] == "window":
                     style, base, glow = "window", np.full(3, 0.95), True
                 else:

@@ -18,6 +18,10 @@ Images, computed the same way on the real MH_05 excerpt (``../shared/data/euroc_
 - FAST corners (OpenCV, threshold 20, non-max suppression) per 100x100 px cell: median and quartiles over the
   cells of the sampled frames.
 
+Hand-held: FAST density and single-image noise of the real RGB-D colour frames in ``../shared/data/rgbd_real``
+(SUN3D and RealSense, converted to grey; their JPEG compression removes some noise and adds some corners) beside
+``handheld`` frames.
+
 Prints a table and writes ``benchmarks/results/bench_sim_realism.json``.
 """
 
@@ -223,6 +227,34 @@ def sim_image_stats(seed: int, duration: float, n_frames: int) -> dict:
     return out
 
 
+def handheld_stats(n_frames: int, seed: int = 0) -> tuple[dict | None, dict]:
+    """FAST density and noise of the real RGB-D colour frames (grey) and of the ``handheld`` preset (752x480)."""
+    from sim.euroc import EUROC_CAM0, _init_render, camera_physics_for, physics_jobs, render_job, simulate_sequence
+
+    def stats(images):
+        cells = np.concatenate([fast_cells(im) for im in images])
+        return {
+            "frames": len(images),
+            "noise_immerkaer_median": float(np.median([immerkaer_sigma(im) for im in images])),
+            "fast_per_cell_median": float(np.median(cells)),
+            "fast_per_cell_q25": float(np.percentile(cells, 25)),
+            "fast_per_cell_q75": float(np.percentile(cells, 75)),
+        }
+
+    real = None
+    root = REPO.parent / "shared" / "data" / "rgbd_real"
+    files = sorted(root.glob("*/frame-*.color.jpg"))
+    if files:
+        pick = [files[i] for i in np.linspace(0, len(files) - 1, n_frames).astype(int)]
+        real = stats([cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2GRAY) for f in pick])
+    physics = camera_physics_for("handheld")
+    data = simulate_sequence("handheld", 30.0, seed, imu_noise=True, realism=True)
+    jobs, *_ = physics_jobs(data, physics, 30.0, 1.0, np.random.default_rng(seed))
+    _init_render((seed, "handheld"), EUROC_CAM0, 0.0, ".", ".", physics)
+    pick = np.linspace(0, len(jobs) - 1, n_frames).astype(int)
+    return real, stats([render_job(jobs[k])[0] for k in pick])
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5, 6, 7])
@@ -282,8 +314,18 @@ def main(argv: list[str] | None = None) -> dict:
         sv = sim.get(key)
         ratio = f"{sv / rv:.2f}" if (rv and sv) else ""
         print(f"  {label:36s} {fmt(rv):>10s} {fmt(sv):>10s} {ratio:>7s}")
+    real_hh, sim_hh = handheld_stats(args.frames)
+    print("\nHand-held: real RGB-D colour frames (rgbd_real: SUN3D, RealSense; 640x480 JPEG, grey) vs handheld preset")
+    print(f"  {'':36s} {'real':>10s} {'simulated':>10s} {'ratio':>7s}")
+    for label, key in rows[:1] + rows[5:8]:
+        rv = None if real_hh is None else real_hh.get(key)
+        sv = sim_hh.get(key)
+        ratio = f"{sv / rv:.2f}" if (rv and sv) else ""
+        print(f"  {label:36s} {fmt(rv):>10s} {fmt(sv):>10s} {ratio:>7s}")
     res = {
         "real_imu_reference": REAL_IMU,
+        "real_rgbd_handheld": real_hh,
+        "sim_handheld": sim_hh,
         "sim_imu": imu,
         "real_images": real,
         "sim_images": sims,

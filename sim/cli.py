@@ -1,7 +1,9 @@
 """``dit-sim``: render synthetic data in the real formats.
 
-    dit-sim euroc out=DIR preset=textured|whitewall duration=SECONDS seed=S imu_noise=true|false
-    dit-sim nyu out=DIR n_train=N n_val=M seed=S
+    dit-sim euroc out=DIR preset=textured|whitewall|flight|handheld|tabletop duration=SECONDS seed=S
+        [imu_noise=true|false] [realism=true|false] [ideal=true]
+    dit-sim nyu out=DIR n_train=N n_val=M seed=S [realism=true]
+    dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
 
 The first bare word selects the job (it is turned into the override ``job=...``); everything else is a Hydra
 override of ``conf/sim.yaml`` (``--cfg job`` prints the composed config).
@@ -19,7 +21,7 @@ from omegaconf import DictConfig
 
 __all__ = ["JOBS", "main"]
 
-JOBS = ("euroc", "nyu")
+JOBS = ("euroc", "nyu", "imu")
 
 
 def _euroc(cfg: DictConfig) -> str:
@@ -36,6 +38,8 @@ def _euroc(cfg: DictConfig) -> str:
         scale=float(cfg.scale),
         workers=int(cfg.workers),
         noise_sigma=float(cfg.image_noise),
+        realism=None if cfg.realism is None else bool(cfg.realism),
+        ideal=bool(cfg.ideal),
     )
     info = json.loads((root / "sim_info.json").read_text())
     w, h = info["resolution"]
@@ -44,11 +48,15 @@ def _euroc(cfg: DictConfig) -> str:
         f"  {mav0 / 'cam0'}: {info['frames']} frames {w}x{h} grey @ {info['cam_rate_hz']} Hz "
         "(data.csv, data/, sensor.yaml)",
         f"  {mav0 / 'depth0'}: {info['frames']} depth PNGs (uint16, metres * 5000, 0 = invalid)",
-        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, "
-        f"imu_noise={info['imu_noise']}",
+        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, imu_noise={info['imu_noise']}",
         f"  {mav0 / 'state_groundtruth_estimate0'}: {info['imu_samples']} states (p, q wxyz, v, biases)",
-        f"  {root / 'sim_info.json'}: preset={info['preset']} seed={info['seed']} rest={info['rest_s']} s",
+        f"  {root / 'sim_info.json'}: preset={info['preset']} seed={info['seed']} rest={info['rest_s']:.3g} s",
     ]
+    if info.get("realism") is not None:
+        lines.append(
+            f"  realism={info['realism']} ideal={info['ideal']}"
+            + (" (camera physics: sim_frames.csv, sim_info.json camera_physics)" if info["realism"] else "")
+        )
     if info["whitewall_window_s"] is not None:
         a, b = info["whitewall_window_s"]
         lines.append(f"  white-wall window: {a:.1f} s .. {b:.1f} s after the first frame")
@@ -67,6 +75,7 @@ def _nyu(cfg: DictConfig) -> str:
         progress=bool(cfg.progress),
         frames_per_scene=int(cfg.frames_per_scene),
         workers=int(cfg.workers),
+        realism=bool(cfg.realism) if cfg.realism is not None else False,
     )
     info = json.loads((root / "sim_info.json").read_text())
     lines = [
@@ -77,15 +86,50 @@ def _nyu(cfg: DictConfig) -> str:
     return f"dit-sim nyu: wrote {root}\n" + "\n".join(lines)
 
 
+def _imu(cfg: DictConfig) -> str:
+    from sim.complete import complete_imu
+    from sim.imu import FLIGHT_IMU, ImuNoise
+
+    if cfg.source is None:
+        raise ValueError("dit-sim imu needs source=DIR (an EuRoC-layout sequence with images and ground truth)")
+    out = cfg.out if cfg.out is not None else f"data/sim/imu_{Path(str(cfg.source)).resolve().name}"
+    noise = None
+    if cfg.imu_sensor is not None:
+        from runtime.io.euroc import read_imu_yaml
+
+        ip = read_imu_yaml(cfg.imu_sensor)
+        noise = ImuNoise(ip.gyro_noise_density, ip.gyro_random_walk, ip.accel_noise_density, ip.accel_random_walk)
+    info = complete_imu(
+        cfg.source,
+        out,
+        seed=int(cfg.seed),
+        noise=noise,
+        errors=FLIGHT_IMU if bool(cfg.vibration) else None,
+        still=float(cfg.still),
+        ramp=float(cfg.ramp),
+    )
+    f = info["fit"]
+    mav0 = Path(out) / "mav0"
+    return (
+        f"dit-sim imu: wrote {out}\n"
+        f"  {mav0 / 'cam0'}: {info['frames']} frames linked from {info['source']} "
+        f"({info['repeated_first_frames']} repeats of the first image, still {info['still_s']:g} s, "
+        f"ramp {info['ramp_s']:g} s)\n"
+        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, vibration={info['vibration']}\n"
+        f"  {mav0 / 'state_groundtruth_estimate0'}: the fitted trajectory at the IMU timestamps\n"
+        f"  fit vs the source ground truth: position median {f['pos_err_median_mm']:.3f} mm "
+        f"(p95 {f['pos_err_p95_mm']:.3f}), rotation median {f['rot_err_median_deg']:.4f} deg "
+        f"(p95 {f['rot_err_p95_deg']:.4f})"
+    )
+
+
 @hydra.main(version_base="1.3", config_path="pkg://conf", config_name="sim")
 def _run(cfg: DictConfig) -> None:
     if cfg.job not in JOBS:
-        sys.exit(
-            f"dit-sim: unknown job {cfg.job!r}; expected one of {', '.join(JOBS)} (e.g. `dit-sim euroc`)"
-        )
+        sys.exit(f"dit-sim: unknown job {cfg.job!r}; expected one of {', '.join(JOBS)} (e.g. `dit-sim euroc`)")
     t0 = time.perf_counter()
     try:
-        summary = _euroc(cfg) if cfg.job == "euroc" else _nyu(cfg)
+        summary = {"euroc": _euroc, "nyu": _nyu, "imu": _imu}[cfg.job](cfg)
     except (
         ValueError,
         FileExistsError,

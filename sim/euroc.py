@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import shutil
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
@@ -28,9 +28,28 @@ from tqdm import tqdm
 
 from runtime.geometry import Camera, R_to_quat_wxyz
 from runtime.io.euroc import EUROC_CAM0, EUROC_T_B_C0, GT_HEADER, IMU_HEADER
-from sim.imu import EUROC_ADIS16448, ImuNoise, add_imu_noise, synthesize_imu
+from sim.camera import (
+    CameraPhysics,
+    auto_exposure,
+    expose,
+    illumination,
+    perturbed_calibration,
+    pixel_velocity,
+    vignetting,
+)
+from sim.imu import (
+    EUROC_ADIS16448,
+    FLIGHT_IMU,
+    HANDHELD_IMU,
+    ImuErrors,
+    ImuNoise,
+    add_imu_errors,
+    add_imu_noise,
+    instantaneous_imu,
+    synthesize_imu,
+)
 from sim.render import Renderer
-from sim.scenes import PRESETS, Scene, make_scene
+from sim.scenes import PRESETS, ROOM_PRESETS, Scene, make_scene
 from sim.trajectory import Trajectory, make_trajectory
 
 __all__ = [
@@ -53,6 +72,7 @@ T0_NS = 1_700_000_000_000_000_000  # first timestamp [ns]
 DEPTH_SCALE = 5000.0  # depth0 PNG value per metre
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 GENERATOR = "dit-sim"
+PHYSICS_DT = 1e-3  # [s] step of the camera motion that gives the pixel velocities (motion blur, rolling shutter)
 
 
 def scaled_camera(scale: float = 1.0, base: Camera = EUROC_CAM0) -> Camera:
@@ -115,6 +135,53 @@ class SequenceData:
         return T
 
 
+def imu_errors_for(preset: str) -> ImuErrors:
+    """The real-IMU errors of a preset: rotor vibration for MAV-like ones, none for hand-held ones."""
+    return HANDHELD_IMU if preset in ("handheld", "tabletop") else FLIGHT_IMU
+
+
+def make_any_trajectory(scene: Scene, duration: float, seed: int, preset: str):
+    """``make_trajectory`` or, for the realistic presets, :func:`sim.motion.make_motion_trajectory`."""
+    if preset in ROOM_PRESETS:
+        from sim.motion import make_motion_trajectory
+
+        return make_motion_trajectory(scene, duration, seed, preset)
+    return make_trajectory(scene, duration, seed, preset)
+
+
+def camera_physics_for(preset: str) -> CameraPhysics:
+    """Camera physics of a preset: EuRoC-like global shutter for MAV ones, a rolling shutter for hand-held ones."""
+    if preset in ("handheld", "tabletop"):
+        return CameraPhysics(readout_s=0.015, time_offset_s=-0.006, exposure_max_s=0.015)
+    return CameraPhysics(time_offset_s=0.003, illum_range=(0.2, 0.7))  # a dim hall: long exposures, as EuRoC MH
+
+
+def physics_jobs(
+    data: SequenceData, physics: CameraPhysics, duration: float, scale: float, rng: np.random.Generator
+) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
+    """Frame jobs with camera physics: poses at mid-exposure (+ time offset), motion, auto-exposure settings.
+
+    Returns:
+        ``(jobs, exposure_s, gain, illumination)``: a job per frame ``(k, ts, T_w_c, T_c1_c0, exposure, gain,
+        illumination)`` for :func:`render_job`, and the per-frame settings (F,).
+    """
+    t_f = data.frame_idx * (DT_NS * 1e-9) + physics.time_offset_s
+    T_w_c = data.trajectory.camera_T(t_f)
+    T_c1_c0 = np.linalg.inv(data.trajectory.camera_T(t_f + PHYSICS_DT)) @ T_w_c
+    illum = illumination(t_f, duration, physics, rng)
+    preview = Renderer(data.scene, scaled_camera(scale * 0.125))
+    previews = np.stack([preview.radiance(T)[0] for T in T_w_c])
+    exposure_s, gain = auto_exposure(previews, illum, physics)
+    frame_ts = data.ts[data.frame_idx]
+    jobs = [
+        (int(k), int(ts), T, Tr, float(e), float(g), float(li))
+        for k, ts, T, Tr, e, g, li in zip(
+            data.frame_idx, frame_ts, T_w_c, T_c1_c0, exposure_s, gain, illum, strict=True
+        )
+    ]
+    return jobs, exposure_s, gain, illum
+
+
 def _check_args(preset: str, duration: float, seed: int) -> None:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {PRESETS}")
@@ -131,6 +198,7 @@ def simulate_sequence(
     imu_noise: bool = True,
     noise: ImuNoise = EUROC_ADIS16448,
     T_b_c: np.ndarray = EUROC_T_B_C0,
+    realism: bool = False,
 ) -> SequenceData:
     """Scene, trajectory, IMU and ground truth of a sequence (no rendering, no files).
 
@@ -141,13 +209,16 @@ def simulate_sequence(
         imu_noise: add white noise and random-walk biases.
         noise: the IMU noise model.
         T_b_c: cam0 pose in the body frame.
+        realism: a real IMU (:func:`imu_errors_for`): instantaneous samples of the continuous trajectory,
+            turn-on biases, rotor vibration (``flight``, ``textured``, ``whitewall``); with ``imu_noise`` only.
+            The ground truth is then the continuous trajectory at the sample times.
 
     Returns:
         The :class:`SequenceData` (``scene`` is the grey scene, ``trajectory`` the smooth camera path).
     """
     _check_args(preset, duration, seed)
     scene = make_scene(seed, preset, rgb=False)
-    traj = make_trajectory(scene, duration, seed, preset)
+    traj = make_any_trajectory(scene, duration, seed, preset)
     n = int(round(duration * IMU_RATE_HZ))
     if n < 2:
         raise ValueError(f"duration {duration} s gives fewer than 2 IMU samples")
@@ -155,12 +226,18 @@ def simulate_sequence(
     t = np.arange(n + 1) * dt
     R_w_b, p_w_b = traj.body_pose(t, T_b_c)
     v_w = traj.body_velocity(t, T_b_c)
-    gyro, accel, p = synthesize_imu(R_w_b, v_w, p_w_b[0], dt)
-    if imu_noise:
-        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1A0]))
-        gyro, accel, bg, ba = add_imu_noise(gyro, accel, dt, rng, noise)
+    if realism and imu_noise:
+        gyro, accel = instantaneous_imu(lambda tt: traj.body_pose(tt, T_b_c), t[:n])
+        p = p_w_b
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1A1]))
+        gyro, accel, bg, ba = add_imu_errors(gyro, accel, dt, rng, noise, imu_errors_for(preset))
     else:
-        bg = ba = np.zeros((n, 3))
+        gyro, accel, p = synthesize_imu(R_w_b, v_w, p_w_b[0], dt)
+        if imu_noise:
+            rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x1A0]))
+            gyro, accel, bg, ba = add_imu_noise(gyro, accel, dt, rng, noise)
+        else:
+            bg = ba = np.zeros((n, 3))
     return SequenceData(
         ts=T0_NS + DT_NS * np.arange(n, dtype=np.int64),
         gyro=gyro,
@@ -250,8 +327,7 @@ def prepare_output(out: Path, parts: tuple[str, ...]) -> None:
             ours = False
     if not ours:
         raise FileExistsError(
-            f"{existing[0]} exists and was not written by {GENERATOR} (no {info}); "
-            "choose another output folder"
+            f"{existing[0]} exists and was not written by {GENERATOR} (no {info}); choose another output folder"
         )
     for p in existing:
         shutil.rmtree(p) if p.is_dir() else p.unlink()
@@ -262,21 +338,28 @@ def prepare_output(out: Path, parts: tuple[str, ...]) -> None:
 _WORKER: dict = {}
 
 
-def _init_render(key: tuple, cam: Camera, noise_sigma: float, cam_dir: str, depth_dir: str) -> None:
+def _init_render(
+    key: tuple, cam: Camera, noise_sigma: float, cam_dir: str, depth_dir: str, physics: CameraPhysics | None = None
+) -> None:
     """Build the scene and renderer of ``key = (seed, preset)`` once per process (unless already there)."""
     cv2.setNumThreads(1)
     if _WORKER.get("key") != (key, cam):
         seed, preset = key
         _WORKER.update(key=(key, cam), renderer=Renderer(make_scene(seed, preset, rgb=False), cam))
     _WORKER.update(noise_sigma=noise_sigma, cam_dir=Path(cam_dir), depth_dir=Path(depth_dir), seed=key[0])
+    _WORKER.update(
+        physics=physics, vig=None if physics is None else vignetting((cam.height, cam.width), physics.vignetting)
+    )
 
 
-def _render_frame(job: tuple[int, int, np.ndarray]) -> int:
-    """Render frame ``k`` (timestamp ``ts``, pose ``T_w_c``), write its image and depth PNGs; returns 1."""
-    k, ts, T_w_c = job
+def _render_frame(job: tuple) -> int:
+    """Render frame ``k`` (timestamp ``ts``, pose ``T_w_c``), write its image and depth PNGs; returns 1.
+
+    A job with camera physics also holds ``(T_c1_c0 over PHYSICS_DT, exposure [s], gain, illumination)``.
+    """
+    k, ts = job[:2]
     w = _WORKER
-    rng = np.random.default_rng(np.random.SeedSequence([w["seed"], 0xCA0, int(k)]))
-    img, depth = w["renderer"].render(T_w_c, rng, w["noise_sigma"])
+    img, depth = render_job(job)
     d = np.rint(depth.astype(np.float64) * DEPTH_SCALE)
     d[(d > 65535) | ~np.isfinite(d)] = 0  # beyond 13.1 m: invalid
     if not cv2.imwrite(str(w["cam_dir"] / f"{ts}.png"), img, PNG_PARAMS):
@@ -286,9 +369,23 @@ def _render_frame(job: tuple[int, int, np.ndarray]) -> int:
     return 1
 
 
-def run_jobs(
-    jobs: list, init, init_args: tuple, fn, workers: int, progress: bool, desc: str, total: int
-) -> None:
+def render_job(job: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Image (uint8) and depth (float32 [m]) of one frame job, with the renderer :func:`_init_render` built."""
+    k, ts, T_w_c = job[:3]
+    w = _WORKER
+    rng = np.random.default_rng(np.random.SeedSequence([w["seed"], 0xCA0, int(k)]))
+    if len(job) == 3:
+        img, depth = w["renderer"].render(T_w_c, rng, w["noise_sigma"])
+    else:
+        T_c1_c0, exposure_s, gain, illum = job[3:]
+        r, phys = w["renderer"], w["physics"]
+        rad, depth = r.radiance(T_w_c)
+        vel = pixel_velocity(depth, r.camera, (r.rx, r.ry), T_c1_c0, PHYSICS_DT)
+        img = expose(rad, vel, exposure_s, gain, illum, phys, w["vig"], rng, phys.readout_s / r.camera.height)
+    return img, depth
+
+
+def run_jobs(jobs: list, init, init_args: tuple, fn, workers: int, progress: bool, desc: str, total: int) -> None:
     """Run ``fn`` over ``jobs`` here (workers <= 1) or in a spawn pool; ``fn`` returns the frames it wrote.
 
     ``init(*init_args)`` prepares each process; the tqdm bar counts frames up to ``total``.
@@ -319,6 +416,8 @@ def write_euroc_sequence(
     scale: float = 1.0,
     workers: int = 1,
     noise_sigma: float = 1.0,
+    realism: bool | None = None,
+    ideal: bool = False,
 ) -> Path:
     """Render a sequence and write it in the EuRoC ASL layout (plus ``depth0``).
 
@@ -333,15 +432,25 @@ def write_euroc_sequence(
         progress: show a tqdm bar.
         scale: image resolution factor (tests only; 1.0 is EuRoC's 752x480, intrinsics are scaled with it).
         workers: rendering processes (1 = in this process).
-        noise_sigma: image noise [grey levels].
+        noise_sigma: image noise [grey levels] (without camera physics).
+        realism: real sensors: camera physics (:mod:`sim.camera`: exposure, motion blur, auto-exposure with
+            sudden light changes, shot / read noise, gamma, vignetting, rolling shutter on hand-held presets, a
+            camera-IMU time offset, a calibration error in ``cam0/sensor.yaml``) and a real IMU (instantaneous
+            samples, turn-on biases, rotor vibration). None: on for ``flight``, ``handheld``, ``tabletop``, off
+            for ``textured`` and ``whitewall`` (whose default data stay as they were).
+        ideal: exact data for known-answer tests: no physics, exact IMU, zero biases, no image noise.
 
     Returns:
         ``out`` as a Path (the folder that contains ``mav0``).
     """
     _check_args(preset, duration, seed)
+    if ideal:
+        realism, imu_noise, noise_sigma = False, False, 0.0
+    elif realism is None:
+        realism = preset in ROOM_PRESETS
     out = Path(out)
     cam = scaled_camera(scale)
-    data = simulate_sequence(preset, duration, int(seed), imu_noise)
+    data = simulate_sequence(preset, duration, int(seed), imu_noise, realism=bool(realism))
     prepare_output(out, ("mav0",))
     mav0 = out / "mav0"
     cam_dir, depth_dir = mav0 / "cam0" / "data", mav0 / "depth0" / "data"
@@ -350,7 +459,12 @@ def write_euroc_sequence(
     imu_dir, gt_dir = mav0 / "imu0", mav0 / "state_groundtruth_estimate0"
 
     cam_rate = IMU_RATE_HZ // CAM_EVERY
-    (mav0 / "cam0" / "sensor.yaml").write_text(_cam_yaml(cam, EUROC_T_B_C0, cam_rate))
+    physics = camera_physics_for(preset) if realism else None
+    written_cam = cam
+    if physics is not None:
+        rng_cam = np.random.default_rng(np.random.SeedSequence([int(seed), 0xCA2]))
+        written_cam = perturbed_calibration(cam, physics, rng_cam, scale)
+    (mav0 / "cam0" / "sensor.yaml").write_text(_cam_yaml(written_cam, EUROC_T_B_C0, cam_rate))
     (mav0 / "depth0" / "sensor.yaml").write_text(_cam_yaml(cam, EUROC_T_B_C0, cam_rate, depth=True))
     imu_dir.mkdir(parents=True)
     (imu_dir / "sensor.yaml").write_text(_imu_yaml(EUROC_ADIS16448))
@@ -364,12 +478,22 @@ def write_euroc_sequence(
 
     T_w_c = data.T_w_b(data.frame_idx) @ EUROC_T_B_C0
     jobs = [(int(k), int(ts), T) for k, ts, T in zip(data.frame_idx, frame_ts, T_w_c, strict=True)]
+    if physics is not None:
+        jobs, exposure_s, gain, illum = physics_jobs(data, physics, duration, scale, rng_cam)
+        rows = [
+            f"{int(ts)},{float(e)!r},{float(g)!r},{float(li)!r}"
+            for ts, e, g, li in zip(frame_ts, exposure_s, gain, illum, strict=True)
+        ]
+        (out / "sim_frames.csv").write_text("#timestamp [ns],exposure [s],gain,illumination\n" + "\n".join(rows) + "\n")
     if workers <= 1:  # reuse the scene built above instead of building it again
         _WORKER.update(key=((int(seed), preset), cam), renderer=Renderer(data.scene, cam))
+    init_args = ((int(seed), preset), cam, float(noise_sigma), str(cam_dir), str(depth_dir))
+    if physics is not None:
+        init_args = init_args + (physics,)
     run_jobs(
         jobs,
         _init_render,
-        ((int(seed), preset), cam, float(noise_sigma), str(cam_dir), str(depth_dir)),
+        init_args,
         _render_frame,
         workers,
         progress,
@@ -401,5 +525,15 @@ def write_euroc_sequence(
         "boxes": len(data.scene.names),
         "imu_convention": "sample k holds over [t_k, t_k+1); gyro then accel (specific force), body frame",
     }
+    if physics is not None or preset in ROOM_PRESETS or ideal:
+        info["realism"] = bool(realism)
+        info["ideal"] = bool(ideal)
+    if physics is not None:
+        info["camera_physics"] = asdict(physics)
+        info["time_offset_s"] = physics.time_offset_s
+        info["render_camera"] = [cam.fx, cam.fy, cam.cx, cam.cy, *cam.dist]
+        info["written_camera"] = [written_cam.fx, written_cam.fy, written_cam.cx, written_cam.cy, *written_cam.dist]
+        info["imu_errors"] = asdict(imu_errors_for(preset)) if imu_noise else None
+        info["frame_settings"] = "sim_frames.csv (exposure, gain, illumination per frame)"
     (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
     return out

@@ -19,7 +19,20 @@ import numpy as np
 
 from runtime.geometry import GRAVITY_W
 
-__all__ = ["ImuNoise", "EUROC_ADIS16448", "so3_log_batch", "synthesize_imu", "add_imu_noise"]
+__all__ = [
+    "ImuNoise",
+    "EUROC_ADIS16448",
+    "so3_log_batch",
+    "synthesize_imu",
+    "add_imu_noise",
+    "Vibration",
+    "ImuErrors",
+    "FLIGHT_IMU",
+    "HANDHELD_IMU",
+    "rotor_vibration",
+    "instantaneous_imu",
+    "add_imu_errors",
+]
 
 
 @dataclass(frozen=True)
@@ -50,9 +63,7 @@ EUROC_ADIS16448 = ImuNoise()
 def so3_log_batch(R: np.ndarray) -> np.ndarray:
     """Rotation vectors of rotations (N, 3, 3), angles < pi - 1e-6 -> (N, 3) [rad]; exact for small angles."""
     R = np.asarray(R, dtype=np.float64)
-    v = 0.5 * np.stack(
-        [R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1
-    )  # sin(th) n
+    v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)  # sin(th) n
     s = np.linalg.norm(v, axis=-1)
     c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
     theta = np.arctan2(s, c)
@@ -81,9 +92,7 @@ def synthesize_imu(
     R_w_b = np.asarray(R_w_b, dtype=np.float64)
     v_w = np.asarray(v_w, dtype=np.float64)
     if R_w_b.ndim != 3 or R_w_b.shape[1:] != (3, 3) or v_w.shape != (R_w_b.shape[0], 3) or R_w_b.shape[0] < 2:
-        raise ValueError(
-            f"need R_w_b (N+1, 3, 3) and v_w (N+1, 3) with N >= 1, got {R_w_b.shape} and {v_w.shape}"
-        )
+        raise ValueError(f"need R_w_b (N+1, 3, 3) and v_w (N+1, 3) with N >= 1, got {R_w_b.shape} and {v_w.shape}")
     if dt <= 0:
         raise ValueError(f"dt must be positive, got {dt}")
     Rt = np.swapaxes(R_w_b[:-1], -1, -2)  # R_k^T
@@ -128,3 +137,157 @@ def add_imu_noise(
     wg = noise.gyro_noise_density / np.sqrt(dt) * rng.standard_normal((n, 3))
     wa = noise.accel_noise_density / np.sqrt(dt) * rng.standard_normal((n, 3))
     return gyro + bg + wg, accel + ba + wa, bg, ba
+
+
+# --------------------------------------------------------------------------- realistic IMU errors
+@dataclass(frozen=True)
+class Vibration:
+    """Rotor vibration added to the IMU: two narrow bands over a broadband floor, per axis.
+
+    The defaults follow EuRoC's ADIS16448 on the MAV resting with its rotors on (V1_01_easy): per-axis
+    standard deviation gyro 0.017-0.043 rad/s, accel 0.21-0.58 m/s^2, peaks near 17 Hz and 70-72 Hz.
+
+    Attributes:
+        gyro_std: (3,) per-axis standard deviation of the gyro vibration [rad/s].
+        accel_std: (3,) per-axis standard deviation of the accelerometer vibration [m/s^2].
+        peaks_hz: centre frequencies of the narrow bands [Hz].
+        bandwidth_hz: -3 dB width of each band [Hz].
+        peak_share: share of the variance in each band; the rest is the white broadband floor.
+    """
+
+    gyro_std: tuple[float, float, float] = (0.030, 0.041, 0.019)
+    accel_std: tuple[float, float, float] = (0.55, 0.34, 0.23)
+    peaks_hz: tuple[float, ...] = (17.0, 71.0)
+    bandwidth_hz: tuple[float, ...] = (1.5, 2.5)
+    peak_share: tuple[float, ...] = (0.3, 0.4)
+
+    def __post_init__(self):
+        if not (len(self.peaks_hz) == len(self.bandwidth_hz) == len(self.peak_share)):
+            raise ValueError("Vibration: peaks_hz, bandwidth_hz and peak_share need the same length")
+        if sum(self.peak_share) > 1.0 or min(self.peak_share, default=0.0) < 0:
+            raise ValueError(f"Vibration: peak shares must be >= 0 and sum to <= 1, got {self.peak_share}")
+
+
+@dataclass(frozen=True)
+class ImuErrors:
+    """Errors of a real MEMS IMU beyond the white noise and bias random walk of :class:`ImuNoise`.
+
+    Attributes:
+        gyro_bias_max: turn-on gyro bias, uniform in [-max, max] per axis [rad/s].
+        accel_bias_max: turn-on accelerometer bias, uniform in [-max, max] per axis [m/s^2].
+        vibration: rotor vibration, or None.
+        scale_sigma: per-axis scale-factor error (standard deviation, e.g. 0.003 = 0.3 %).
+        misalign_sigma: axis misalignment (standard deviation of the off-diagonal terms) [rad].
+    """
+
+    gyro_bias_max: float = 0.1
+    accel_bias_max: float = 0.2
+    vibration: Vibration | None = Vibration()
+    scale_sigma: float = 0.0
+    misalign_sigma: float = 0.0
+
+
+#: The errors a realistic flight sequence gets (rotors on from the first sample).
+FLIGHT_IMU = ImuErrors()
+#: Hand-held: no rotors.
+HANDHELD_IMU = ImuErrors(vibration=None)
+
+
+def _resonator(n: int, dt: float, f0: float, bw: float, rng: np.random.Generator) -> np.ndarray:
+    """Unit-variance narrow-band noise (AR(2) resonator at ``f0`` Hz, width ``bw`` Hz): (n,) float64."""
+    from scipy.signal import lfilter
+
+    r = np.exp(-np.pi * bw * dt)
+    a1, a2 = -2.0 * r * np.cos(2.0 * np.pi * f0 * dt), r * r
+    var = (1.0 + a2) / ((1.0 - a2) * ((1.0 + a2) ** 2 - a1 * a1))  # stationary variance for unit drive
+    burn = int(np.ceil(5.0 / (np.pi * bw * dt)))  # transients decay by e^-5
+    e = rng.standard_normal(n + burn)
+    return lfilter([1.0], [1.0, a1, a2], e)[burn:] / np.sqrt(var)
+
+
+def rotor_vibration(n: int, dt: float, rng: np.random.Generator, vib: Vibration) -> tuple[np.ndarray, np.ndarray]:
+    """Gyro and accelerometer vibration (n, 3) each [rad/s, m/s^2]: narrow bands plus a white floor.
+
+    Each axis of each sensor gets its own independent bands with the shares of ``vib``; a band above the
+    Nyquist frequency ``1 / (2 dt)`` is folded into the floor.
+    """
+    out = []
+    for std in (vib.gyro_std, vib.accel_std):
+        x = np.zeros((n, 3))
+        for ax in range(3):
+            floor = 1.0
+            for f0, bw, share in zip(vib.peaks_hz, vib.bandwidth_hz, vib.peak_share, strict=True):
+                if f0 < 0.5 / dt - bw:
+                    x[:, ax] += np.sqrt(share) * _resonator(n, dt, f0, bw, rng)
+                    floor -= share
+            x[:, ax] += np.sqrt(max(floor, 0.0)) * rng.standard_normal(n)
+            x[:, ax] *= std[ax]
+        out.append(x)
+    return out[0], out[1]
+
+
+def instantaneous_imu(pose_fn, t: np.ndarray, h: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Instantaneous angular rate and specific force of a smooth body trajectory.
+
+    Args:
+        pose_fn: ``t (N,) -> (R_w_b (N, 3, 3), p_w_b (N, 3))``, smooth in t.
+        t: (N,) sample times [s].
+        h: finite-difference step [s] (4th order in h for the acceleration, 2nd order for the rate).
+
+    Returns:
+        ``(gyro, accel)``: (N, 3) body-frame rate [rad/s] and specific force ``R^T (a_w - g_w)`` [m/s^2].
+    """
+    t = np.asarray(t, dtype=np.float64)
+    R_m, _ = pose_fn(t - h)
+    R_p, _ = pose_fn(t + h)
+    R_0, p0 = pose_fn(t)
+    R_0t = np.swapaxes(R_0, -1, -2)
+    gyro = (so3_log_batch(R_0t @ R_p) - so3_log_batch(R_0t @ R_m)) / (2.0 * h)  # body frame at t, O(h^2)
+    p = {k: pose_fn(t + k * h)[1] for k in (-2, -1, 1, 2)}
+    a_w = (-p[2] + 16.0 * p[1] - 30.0 * p0 + 16.0 * p[-1] - p[-2]) / (12.0 * h * h)
+    accel = np.einsum("nji,nj->ni", R_0, a_w - GRAVITY_W)
+    return gyro, accel
+
+
+def add_imu_errors(
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    dt: float,
+    rng: np.random.Generator,
+    noise: ImuNoise = EUROC_ADIS16448,
+    errors: ImuErrors = FLIGHT_IMU,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Measured samples of a real IMU: scale / misalignment, turn-on bias + random walk, vibration, white noise.
+
+    ``meas = M true + b + vibration + white``; ``M = I + diag(scale) + misalignment`` (identity by default).
+    The returned biases are what a ground truth would hold (vibration is not a bias).
+
+    Returns:
+        ``(gyro_meas, accel_meas, bg, ba)``: (N, 3) each.
+    """
+    n = gyro.shape[0]
+    mats = []
+    for _ in range(2):
+        M = np.eye(3)
+        if errors.scale_sigma > 0:
+            M += np.diag(rng.normal(0.0, errors.scale_sigma, 3))
+        if errors.misalign_sigma > 0:
+            off = rng.normal(0.0, errors.misalign_sigma, (3, 3))
+            M += off - np.diag(np.diag(off))
+        mats.append(M)
+    bg0 = rng.uniform(-errors.gyro_bias_max, errors.gyro_bias_max, 3)
+    ba0 = rng.uniform(-errors.accel_bias_max, errors.accel_bias_max, 3)
+    steps_g = noise.gyro_random_walk * np.sqrt(dt) * rng.standard_normal((n, 3))
+    steps_a = noise.accel_random_walk * np.sqrt(dt) * rng.standard_normal((n, 3))
+    steps_g[0] = steps_a[0] = 0.0
+    bg = bg0 + np.cumsum(steps_g, axis=0)
+    ba = ba0 + np.cumsum(steps_a, axis=0)
+    if errors.vibration is not None:
+        vg, va = rotor_vibration(n, dt, rng, errors.vibration)
+    else:
+        vg = va = np.zeros((n, 3))
+    wg = noise.gyro_noise_density / np.sqrt(dt) * rng.standard_normal((n, 3))
+    wa = noise.accel_noise_density / np.sqrt(dt) * rng.standard_normal((n, 3))
+    g = gyro @ mats[0].T + bg + vg + wg
+    a = accel @ mats[1].T + ba + va + wa
+    return g, a, bg, ba

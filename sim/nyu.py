@@ -57,7 +57,9 @@ def _render_scene(job: tuple) -> int:
     import cv2
 
     cv2.setNumThreads(1)
-    out_dir, scene_seed, n_frames, noise_sigma, compression = job
+    if len(job) == 6 and job[5]:
+        return _render_scene_realistic(job)
+    out_dir, scene_seed, n_frames, noise_sigma, compression = job[:5]
     scene = make_scene(scene_seed, "textured", rgb=True)
     renderer = Renderer(scene, KINECT_RGB)
     out_dir = Path(out_dir)
@@ -67,9 +69,59 @@ def _render_scene(job: tuple) -> int:
         T_w_c = random_viewpoints(scene, 1, rng)[0]
         img, depth = renderer.render(T_w_c, rng, noise_sigma, exposure=float(rng.uniform(0.85, 1.15)))
         with h5py.File(out_dir / f"{j:05d}.h5", "w") as f:
-            f.create_dataset(
-                "rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression
-            )
+            f.create_dataset("rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression)
+            f.create_dataset("depth", data=depth.astype(np.float32), compression=compression)
+    return n_frames
+
+
+def _render_scene_realistic(job: tuple) -> int:
+    """A realistic room (:mod:`sim.rooms`) seen along a hand-held trajectory, through the camera physics."""
+    from sim.camera import auto_exposure, expose, illumination, pixel_velocity, vignetting
+    from sim.euroc import camera_physics_for
+    from sim.motion import make_motion_trajectory
+
+    out_dir, scene_seed, n_frames, _, compression = job[:5]
+    preset = ("handheld", "tabletop")[scene_seed % 2]
+    scene = make_scene(scene_seed, preset, rgb=True)
+    physics = camera_physics_for(preset)
+    traj = make_motion_trajectory(scene, 120.0, scene_seed % (2**32), preset)
+    renderer = Renderer(scene, KINECT_RGB)
+    preview = Renderer(
+        scene,
+        Camera(
+            KINECT_RGB.fx / 8,
+            KINECT_RGB.fy / 8,
+            KINECT_RGB.cx / 8,
+            KINECT_RGB.cy / 8,
+            KINECT_RGB.width // 8,
+            KINECT_RGB.height // 8,
+        ),
+    )
+    vig = vignetting((KINECT_RGB.height, KINECT_RGB.width), physics.vignetting)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for j in range(n_frames):
+        rng = np.random.default_rng(np.random.SeedSequence([scene_seed, 0x5EF, j]))
+        t = float(rng.uniform(0.0, 120.0))
+        T_w_c, T_w_c1 = traj.camera_T(np.array([t, t + 1e-3]))
+        illum = illumination(np.array([0.0]), 1.0, physics, rng)
+        rad_lo = preview.radiance(T_w_c)[0].mean(-1)[None]
+        exposure_s, gain = auto_exposure(rad_lo, illum, physics)  # settled on this view
+        rad, depth = renderer.radiance(T_w_c)
+        vel = pixel_velocity(depth, KINECT_RGB, (renderer.rx, renderer.ry), np.linalg.inv(T_w_c1) @ T_w_c, 1e-3)
+        img = expose(
+            rad,
+            vel,
+            float(exposure_s[0]),
+            float(gain[0]),
+            float(illum[0]),
+            physics,
+            vig,
+            rng,
+            physics.readout_s / KINECT_RGB.height,
+        )
+        with h5py.File(out_dir / f"{j:05d}.h5", "w") as f:
+            f.create_dataset("rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression)
             f.create_dataset("depth", data=depth.astype(np.float32), compression=compression)
     return n_frames
 
@@ -89,6 +141,7 @@ def write_nyu_dataset(
     workers: int = 1,
     noise_sigma: float = 1.5,
     compression: str | None = "gzip",
+    realism: bool = False,
 ) -> Path:
     """Render ``n_train`` + ``n_val`` RGB-D frames and write them in the NYU h5 layout.
 
@@ -101,6 +154,9 @@ def write_nyu_dataset(
         frames_per_scene: viewpoints per room.
         workers: rendering processes (1 = in this process).
         noise_sigma: RGB noise [levels of 255].
+        realism: realistic rooms (:mod:`sim.rooms`, ``handheld`` and ``tabletop`` alternating), views along a
+            hand-held trajectory, and the camera physics of :mod:`sim.camera` (exposure, motion blur, rolling
+            shutter, noise, gamma, vignetting); ``noise_sigma`` is then unused. Off: the data stay as they were.
         compression: h5py dataset compression (``"gzip"``, ``"lzf"`` or None; gzip is a standard HDF5 filter,
             about 25 % smaller than raw here); h5py reads any of them transparently.
 
@@ -123,13 +179,12 @@ def write_nyu_dataset(
         for i, s in enumerate(scene_seeds(seed, split, n_scenes)):
             name = f"sim_{split}_{i:04d}"
             count = min(frames_per_scene, n - i * frames_per_scene)
-            jobs.append((str(out / split / name), s, count, float(noise_sigma), compression))
+            job = (str(out / split / name), s, count, float(noise_sigma), compression)
+            jobs.append(job + (True,) if realism else job)
             names.append(name)
         scenes[split] = names
         (out / split).mkdir(parents=True, exist_ok=True)
-    run_jobs(
-        jobs, _noop, (), _render_scene, workers, progress, "nyu", int(n_train) + int(n_val)
-    )  # a job per scene
+    run_jobs(jobs, _noop, (), _render_scene, workers, progress, "nyu", int(n_train) + int(n_val))  # a job per scene
     info = {
         "generator": GENERATOR,
         "job": "nyu",
@@ -137,6 +192,7 @@ def write_nyu_dataset(
         "n_train": int(n_train),
         "n_val": int(n_val),
         "frames_per_scene": int(frames_per_scene),
+        **({"realism": True} if realism else {}),
         "camera": {
             "fx": KINECT_RGB.fx,
             "fy": KINECT_RGB.fy,

@@ -21,9 +21,7 @@ _EDGES = np.array(
     [[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]],
     dtype=np.int64,
 )
-_CORNER_BITS = np.array(
-    [[(i >> 0) & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64
-)  # (8, 3)
+_CORNER_BITS = np.array([[(i >> 0) & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=np.float64)  # (8, 3)
 
 
 def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -67,9 +65,7 @@ class Renderer:
         box, axis = face // 6, (face % 6) // 2
         ua = np.array([FACE_UV_AXES[a][0] for a in axis])
         va = np.array([FACE_UV_AXES[a][1] for a in axis])
-        self.face_u0 = scene.lo[box, ua].astype(
-            np.float32
-        )  # (F,) origin of the face's texture coordinates [m]
+        self.face_u0 = scene.lo[box, ua].astype(np.float32)  # (F,) origin of the face's texture coordinates [m]
         self.face_v0 = scene.lo[box, va].astype(np.float32)
         self.shade = scene.shade.astype(np.float32)
 
@@ -77,9 +73,7 @@ class Renderer:
     def shape(self) -> tuple[int, int]:
         return (self.camera.height, self.camera.width)
 
-    def _pixel_rect(
-        self, lo: np.ndarray, hi: np.ndarray, R_c_w: np.ndarray, o: np.ndarray, near: float = 1e-3
-    ):
+    def _pixel_rect(self, lo: np.ndarray, hi: np.ndarray, R_c_w: np.ndarray, o: np.ndarray, near: float = 1e-3):
         """Pixel rectangle ``(v0, v1, u0, u1)`` (half-open) that can see box ``[lo, hi]``; None: invisible."""
         corners = lo + _CORNER_BITS * (hi - lo)  # (8, 3) world
         pc = (corners - o) @ R_c_w.T  # (8, 3) camera
@@ -90,9 +84,7 @@ class Renderer:
         pts = [pc[front]]
         a, b = _EDGES[:, 0], _EDGES[:, 1]
         cross = front[a] != front[b]
-        if (
-            cross.any()
-        ):  # clip the box at the plane z = near: edge intersections are vertices of the visible part
+        if cross.any():  # clip the box at the plane z = near: edge intersections are vertices of the visible part
             pa, pb = pc[a[cross]], pc[b[cross]]
             s = (near - pa[:, 2]) / (pb[:, 2] - pa[:, 2])
             pts.append(pa + s[:, None] * (pb - pa))
@@ -164,9 +156,7 @@ class Renderer:
             ax = tmin[0] == tnear
             ay = ~ax & (tmin[1] == tnear)
             base = 6 * b
-            fb = np.where(
-                ax, base + neg[0][win], np.where(ay, base + 2 + neg[1][win], base + 4 + neg[2][win])
-            )
+            fb = np.where(ax, base + neg[0][win], np.where(ay, base + 2 + neg[1][win], base + 4 + neg[2][win]))
             np.copyto(tw, tnear, where=hit)
             np.copyto(face[win], fb, where=hit)
         return t, face
@@ -210,3 +200,46 @@ class Renderer:
         img = np.clip(val + f32(0.5), 0, 255).astype(np.uint8)
         img = img.reshape(H, W) if img.shape[1] == 1 else img.reshape(H, W, img.shape[1])
         return img, t
+
+    def radiance(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Linear scene radiance (relative units, 1 = a white surface fully lit) and depth of one frame.
+
+        Scenes with a ``point_light`` (:mod:`sim.rooms`) are shaded per pixel: ``shade * (ambient + diffuse * cos
+        / (1 + (d / range)^2))`` with ``d`` the distance to the light; emissive faces get ``shade`` alone.
+        Other scenes get their per-face ``shade``.
+
+        Returns:
+            ``(radiance, depth)``: (H, W) or (H, W, 3) float32 (following the atlas), (H, W) float32 z-depth [m].
+        """
+        t, face = self.trace(T_w_c)
+        H, W = self.shape
+        o = np.asarray(T_w_c, dtype=np.float64)[:3, 3]
+        R = np.asarray(T_w_c, dtype=np.float64)[:3, :3]
+        f32 = np.float32
+        tf, ff = t.reshape(-1), face.reshape(-1)
+        rx, ry = self.rx.reshape(-1), self.ry.reshape(-1)
+        p = [f32(o[i]) + tf * (f32(R[i, 0]) * rx + f32(R[i, 1]) * ry + f32(R[i, 2])) for i in range(3)]
+        axis = (ff % 6) // 2
+        u = np.where(axis == 0, p[1], p[0]) - self.face_u0[ff]
+        v = np.where(axis == 2, p[1], p[2]) - self.face_v0[ff]
+        albedo = self.scene.atlas.lookup(ff, u, v)  # (P, C)
+        sc = self.scene
+        if sc.point_light is None:
+            gain = self.shade[ff]
+        else:
+            if not hasattr(self, "_normals"):
+                from sim.rooms import face_normals
+
+                self._normals = face_normals(sc.n_boxes)
+                self._emissive = (
+                    np.zeros(6 * sc.n_boxes, bool) if sc.emissive is None else np.asarray(sc.emissive, bool)
+                )
+            n = self._normals[ff]  # (P, 3)
+            lx = [f32(sc.point_light[i]) - p[i] for i in range(3)]
+            d2 = lx[0] * lx[0] + lx[1] * lx[1] + lx[2] * lx[2]
+            cos = (n[:, 0] * lx[0] + n[:, 1] * lx[1] + n[:, 2] * lx[2]) / np.sqrt(d2 + f32(1e-9))
+            lit = f32(0.08) + f32(1.8) * np.maximum(cos, f32(0.0)) / (f32(1.0) + d2 / f32(sc.light_range**2))
+            gain = self.shade[ff] * np.where(self._emissive[ff], f32(1.0), lit)
+        val = albedo * gain[:, None]
+        val = val.reshape(H, W) if val.shape[1] == 1 else val.reshape(H, W, val.shape[1])
+        return val, t

@@ -21,9 +21,11 @@ import numpy as np
 
 from sim.textures import TextureAtlas, make_texture
 
-__all__ = ["PRESETS", "FACE_UV_AXES", "Scene", "make_scene", "scene_from_boxes", "box_distance"]
+__all__ = ["PRESETS", "ROOM_PRESETS", "FACE_UV_AXES", "Scene", "make_scene", "scene_from_boxes", "box_distance"]
 
-PRESETS = ("textured", "whitewall")
+PRESETS = ("textured", "whitewall", "flight", "handheld", "tabletop")
+#: Presets of :mod:`sim.rooms` (natural textures, point light, realistic sensors by default).
+ROOM_PRESETS = ("flight", "handheld", "tabletop")
 #: (u axis, v axis) of faces normal to x, y, z.
 FACE_UV_AXES = ((1, 2), (0, 2), (0, 1))
 #: The textureless wall of the ``whitewall`` preset: (axis, side) -> the wall x = Lx.
@@ -59,6 +61,12 @@ class Scene:
     whitewall: bool = False
     seed: int = 0
     light_dir: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    #: realistic rooms (:mod:`sim.rooms`): a point light for per-pixel shading (None: per-face ``shade`` only)
+    point_light: np.ndarray | None = None
+    light_range: float = 4.0
+    #: (6B,) faces that glow (windows, lamps): ``shade`` only, no point-light shading
+    emissive: np.ndarray | None = None
+    preset: str = "textured"
 
     @property
     def n_boxes(self) -> int:
@@ -173,9 +181,7 @@ def _furniture(rng: np.random.Generator, size: np.ndarray, band: float, walls: l
                     bd = float(rng.uniform(0.25, depth))
                     bh = float(rng.uniform(0.2, 0.5))
                     s2 = s + float(rng.uniform(0, width - bw))
-                    lo, hi = _along_wall(
-                        wall, s2, s2 + bw, bd, z, z + bh, size, gap=float(rng.uniform(0, depth - bd))
-                    )
+                    lo, hi = _along_wall(wall, s2, s2 + bw, bd, z, z + bh, size, gap=float(rng.uniform(0, depth - bd)))
                     boxes.append(("box", lo, hi, "object"))
                     z += bh
             s += width + float(rng.uniform(0.05, 0.6))
@@ -189,9 +195,7 @@ def _furniture(rng: np.random.Generator, size: np.ndarray, band: float, walls: l
     # low objects in the middle: a rug and maybe a low table (top below free_z[0] - clearance)
     rug_w, rug_d = float(rng.uniform(1.0, 2.0)), float(rng.uniform(1.0, 2.5))
     cx, cy = Lx / 2 + float(rng.uniform(-0.4, 0.4)), Ly / 2 + float(rng.uniform(-0.4, 0.4))
-    boxes.append(
-        ("rug", [cx - rug_w / 2, cy - rug_d / 2, 0.0], [cx + rug_w / 2, cy + rug_d / 2, 0.012], "object")
-    )
+    boxes.append(("rug", [cx - rug_w / 2, cy - rug_d / 2, 0.0], [cx + rug_w / 2, cy + rug_d / 2, 0.012], "object"))
     if rng.uniform() < 0.6:
         h = float(rng.uniform(0.25, 0.4))
         tw, td = float(rng.uniform(0.4, 0.9)), float(rng.uniform(0.4, 0.9))
@@ -224,6 +228,10 @@ def make_scene(
     """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {PRESETS}")
+    if preset in ROOM_PRESETS:
+        from sim.rooms import make_room
+
+        return make_room(seed, preset, rgb=rgb)
     if clearance < 0:
         raise ValueError(f"clearance must be >= 0, got {clearance}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5CE2E]))
@@ -312,9 +320,7 @@ def scene_from_boxes(
     lo = np.asarray(lo, dtype=np.float64).reshape(-1, 3)
     hi = np.asarray(hi, dtype=np.float64).reshape(-1, 3)
     if lo.shape != hi.shape or np.any(hi <= lo) or np.any(size <= 0):
-        raise ValueError(
-            f"boxes need lo < hi (got lo {lo.tolist()}, hi {hi.tolist()}) and a positive room size"
-        )
+        raise ValueError(f"boxes need lo < hi (got lo {lo.tolist()}, hi {hi.tolist()}) and a positive room size")
     all_lo = np.concatenate([np.zeros((1, 3)), lo])
     all_hi = np.concatenate([size[None], hi])
     images = []

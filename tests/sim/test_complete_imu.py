@@ -1,0 +1,115 @@
+"""``dit-sim imu``: completing a posed image sequence with an IMU (known answer, still period, real excerpt)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from runtime.geometry import GRAVITY_W, R_to_quat_wxyz, so3_exp
+from runtime.io.euroc import GT_HEADER, read_euroc
+from sim.complete import complete_imu
+from sim.euroc import EUROC_T_B_C0, _cam_yaml, _write_csv, scaled_camera
+from sim.imu import ImuNoise
+
+MH05 = Path(__file__).resolve().parents[3] / "shared" / "data" / "euroc_MH_05_excerpt"
+W, R = 0.6, 1.2  # yaw rate [rad/s], circle radius [m]
+ZERO = ImuNoise(0.0, 0.0, 0.0, 0.0)
+
+
+def _truth(t):
+    """Body on a circle, yawing with it: R_w_b = Rz(w t), p = r (cos, sin, 0) + (0, 0, 1)."""
+    Rw = np.stack([so3_exp(np.array([0.0, 0.0, W * ti])) for ti in t])
+    p = np.stack([R * np.cos(W * t), R * np.sin(W * t), np.ones_like(t)], -1)
+    v = np.stack([-R * W * np.sin(W * t), R * W * np.cos(W * t), np.zeros_like(t)], -1)
+    return Rw, p, v
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    """A 6 s circle at 200 Hz ground truth (biases 0.01 rad/s, 0.05 m/s^2) and 20 Hz tiny images (4 s)."""
+    root = tmp_path_factory.mktemp("posed")
+    mav0 = root / "mav0"
+    t0 = 1_600_000_000_000_000_000
+    ts = t0 + 5_000_000 * np.arange(1200, dtype=np.int64)
+    t = (ts - t0) * 1e-9
+    Rw, p, v = _truth(t)
+    bias = np.tile([0.01, -0.01, 0.01, 0.05, -0.05, 0.05], (len(t), 1))
+    gt = np.concatenate([p, R_to_quat_wxyz(Rw), v, bias], 1)
+    _write_csv(mav0 / "state_groundtruth_estimate0" / "data.csv", GT_HEADER, ts, gt)
+    (mav0 / "cam0" / "data").mkdir(parents=True)
+    frames = ts[200:1000:10]
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(mav0 / "cam0" / "data" / f"{f}.png"), np.full((10, 16), k, np.uint8))
+    (mav0 / "cam0" / "data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{f},{f}.png\n" for f in frames))
+    (mav0 / "cam0" / "sensor.yaml").write_text(_cam_yaml(scaled_camera(16 / 752), EUROC_T_B_C0, 20))
+    return root, t0
+
+
+def test_noiseless_completion_matches_the_truth(source, tmp_path):
+    root, t0 = source
+    info = complete_imu(root, tmp_path / "out", noise=ZERO, errors=None, sigma_p=1e-6, sigma_q=1e-7)
+    assert info["fit"]["pos_err_median_mm"] < 0.05 and info["fit"]["rot_err_median_deg"] < 1e-3
+    seq = read_euroc(tmp_path / "out")
+    assert len(seq) == 80 and seq.imu.gyro_noise_density == 0.0
+    img_link = tmp_path / "out" / "mav0" / "cam0" / "data" / f"{seq.frame_ts[5]}.png"
+    assert img_link.is_symlink() and img_link.resolve().parent == (root / "mav0" / "cam0" / "data").resolve()
+    assert seq.image(5)[0, 0] == 5
+    t = (seq.imu_ts - t0) * 1e-9
+    Rw, p, v = _truth(t)
+    np.testing.assert_allclose(seq.gt.p_w_b, p, atol=1e-5)
+    np.testing.assert_allclose(seq.gt.v_w, v, atol=1e-4)
+    # instantaneous samples: gyro = (0, 0, w) + bias; accel = centripetal -w^2 r along body -x, plus gravity
+    np.testing.assert_allclose(seq.gyro, np.tile([0.01, -0.01, W + 0.01], (len(t), 1)), atol=1e-4)
+    expect = np.tile([-W * W * R + 0.05, -0.05, -GRAVITY_W[2] + 0.05], (len(t), 1))
+    np.testing.assert_allclose(seq.accel, expect, atol=2e-3)
+    np.testing.assert_array_equal(seq.gt.bg, np.tile([0.01, -0.01, 0.01], (len(t), 1)))
+    assert seq.imu_ts[0] == seq.frame_ts[0] and seq.imu_ts[-1] <= seq.frame_ts[-1]
+
+
+def test_still_period_repeats_first_image_and_ramps(source, tmp_path):
+    root, _ = source
+    info = complete_imu(
+        root, tmp_path / "still", noise=ZERO, errors=None, still=1.5, ramp=1.0, sigma_p=1e-6, sigma_q=1e-7
+    )
+    seq = read_euroc(tmp_path / "still")
+    assert info["repeated_first_frames"] == 30 and len(seq) == 110
+    assert all(seq.image(k)[0, 0] == 0 for k in range(31))  # 30 repeats + the original first frame
+    rest = seq.imu_ts < seq.frame_ts[30]
+    assert rest.sum() == 300
+    np.testing.assert_allclose(seq.gt.v_w[rest], 0.0, atol=1e-9)
+    np.testing.assert_allclose(seq.gyro[rest], np.tile([0.01, -0.01, 0.01], (rest.sum(), 1)), atol=1e-9)
+    a_w = np.einsum("nij,nj->ni", seq.gt.T_w_b[rest][:, :3, :3], seq.accel[rest] - seq.gt.ba[rest])
+    np.testing.assert_allclose(a_w, np.tile([0.0, 0.0, 9.81], (rest.sum(), 1)), atol=1e-6)
+    speed = np.linalg.norm(seq.gt.v_w, axis=1)
+    assert np.all(np.diff(speed[rest.sum() : rest.sum() + 200]) >= -1e-6)  # the ramp speeds up smoothly
+    assert speed[-1] == pytest.approx(R * W, rel=1e-3)
+    # after the ramp, images keep their poses: frame k shows the original frame k's pose
+    k = 100
+    np.testing.assert_allclose(
+        seq.gt_pose_at(seq.frame_ts[k])[:3, 3],
+        _truth(np.array([(int(seq.image(k)[0, 0]) * 50_000_000 + 1_000_000_000) * 1e-9]))[1][0],
+        atol=1e-4,
+    )
+
+
+@pytest.mark.skipif(not (MH05 / "mav0").is_dir(), reason=f"real EuRoC MH_05 excerpt not found at {MH05}")
+def test_real_mh05_excerpt_fit(tmp_path):
+    info = complete_imu(MH05, tmp_path / "mh05")
+    assert info["fit"]["pos_err_median_mm"] < 1.0 and info["fit"]["rot_err_median_deg"] < 0.05
+    seq = read_euroc(tmp_path / "mh05")
+    assert len(seq) == 585 and len(seq.imu_ts) > 5000
+    # rotor vibration: the gyro's sample-to-sample jitter is far above the ADIS white noise
+    assert np.std(np.diff(seq.gyro, axis=0)) > 0.01
+
+
+def test_cli_imu(source, tmp_path, capsys):
+    from sim.cli import main
+
+    root, _ = source
+    main(["imu", f"source={root}", f"out={tmp_path / 'cli'}", "still=1", "vibration=false"])
+    out = capsys.readouterr().out
+    assert "20 repeats of the first image" in out and "vibration=False" in out
+    assert (tmp_path / "cli" / "mav0" / "imu0" / "data.csv").is_file()

@@ -65,7 +65,9 @@ class SparseConfig:
         if self.noise_std < 0 or self.eval_noise_std < 0:
             raise ValueError(f"noise_std={self.noise_std}, eval_noise_std={self.eval_noise_std} must be >= 0")
         if not (0 <= self.outlier_frac <= 1 and 0 <= self.eval_outlier_frac <= 1):
-            raise ValueError(f"outlier_frac={self.outlier_frac}, eval_outlier_frac={self.eval_outlier_frac} not in [0, 1]")
+            raise ValueError(
+                f"outlier_frac={self.outlier_frac}, eval_outlier_frac={self.eval_outlier_frac} not in [0, 1]"
+            )
         if not 0 < self.fast_threshold < 256:
             raise ValueError(f"fast_threshold={self.fast_threshold} must be in 1..255")
 

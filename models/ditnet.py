@@ -62,6 +62,7 @@ UNCERTAINTY_MIN = 0.01  # m
 DEPTH_INIT = 2.0  # m, depth predicted at initialisation (head bias)
 REL_LOG_RANGE = 2.0  # relative mode: |log(depth / fill)| < 2
 REL_UNCERTAINTY_MIN = 0.005  # relative mode: smallest uncertainty as a fraction of the samples' scale
+REL_UNCERTAINTY_INIT = 0.05  # relative mode: uncertainty at initialisation, fraction of the samples' scale
 REL_GT_RANGE = (math.exp(-2.0), math.exp(2.0))  # relative mode: range of gt / fill seen by the CVAE encoder
 
 
@@ -323,6 +324,11 @@ class DiTNet(nn.Module):
             nn.init.normal_(head.weight, 0.0, 0.01)
         if relative:
             nn.init.zeros_(self.decoder.head.bias)  # depth = fill at initialisation
+            # uncertainty starts at REL_UNCERTAINTY_INIT of the scale, not at softplus(0) = 69 % of it: Eq. 6 weighs
+            # the depth error by 1 / B, and with B that large the correction learned several times slower (one
+            # batch overfitted 150 steps: mean |error| 0.085 -> 0.068 m against 0.085 -> 0.039 m with this start).
+            b0 = REL_UNCERTAINTY_INIT - REL_UNCERTAINTY_MIN
+            nn.init.constant_(self.prior_net.head.bias, math.log(math.expm1(b0)))
         else:
             nn.init.constant_(self.decoder.head.bias, self.decoder.to_depth.inverse_logit(DEPTH_INIT))
 

@@ -22,6 +22,7 @@ def build_model(
     width_mult: float = 1.0,
     height: int = 224,
     width: int = 224,
+    relative: bool = False,
 ) -> nn.Module:
     """Build one of ``dit | codevio8 | codevio32 | fastdepth`` for a modality ``rgb | rgbs | gray | grays``.
 
@@ -32,6 +33,8 @@ def build_model(
             only their own (8 / 32); ``fastdepth`` has no code and accepts only None.
         width_mult: channel multiplier of encoders and decoders.
         height, width: network input size [px], multiples of 32.
+        relative: ``dit`` only: predict relative to the densified sparse input (:class:`~models.ditnet.DiTNet`);
+            it has no effect on the modalities without sparse depth.
 
     >>> m = build_model("codevio32", "rgbs", width_mult=0.25, height=64, width=96)
     >>> (m.code_dim, m.in_channels, m.modality, m.attention)
@@ -43,12 +46,16 @@ def build_model(
         raise ValueError(f"modality={modality!r} not in {sorted(MODALITY_CHANNELS)}")
     cin = MODALITY_CHANNELS[modality]
     default = MODEL_NAMES[name]
+    if relative and name != "dit":
+        raise ValueError(f"relative=True needs model dit, got {name}")
+    relative = bool(relative) and modality.endswith("s")  # without sparse input there is nothing to be relative to
     if name == "fastdepth":
         if code_dim is not None:
             raise ValueError(f"fastdepth has no depth code, got code_dim={code_dim!r}")
         return fastdepth(cin, width_mult, height, width)
     if name == "dit":
-        return DiTNet(cin, default if code_dim is None else code_dim, True, width_mult, height, width)
+        code = default if code_dim is None else code_dim
+        return DiTNet(cin, code, True, width_mult, height, width, relative=bool(relative))
     if code_dim is not None and code_dim != default:
         raise ValueError(f"{name} has code_dim {default}, got code_dim={code_dim!r} (use dit or codevio())")
     return codevio(cin, default, width_mult, height, width)

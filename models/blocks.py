@@ -279,6 +279,94 @@ class InputNorm(nn.Module):
         return torch.cat([img, *self.depth_log(x[:, self.image_channels :])], dim=1)
 
 
+class SparseFill(nn.Module):
+    """Sparse depth -> (dense fill, sample mask, scale): mask-normalised push-pull, plain pool/resize ops.
+
+    Pull: the sample map ``v = sparse * mask`` and the mask ``w`` are average-pooled ``levels`` times by 2.
+    Push: starting from the global mean of the samples (``sum v / sum w``), each finer level takes its own
+    normalised value ``v_k / w_k`` in the cells that hold a sample and the bilinearly upsampled coarser fill
+    elsewhere. The result equals the samples at sampled pixels, the constant for a constant input, and is linear
+    in the sample depths, so the fill of ``2 * sparse`` is twice the fill of ``sparse``.
+
+    The scale is the geometric mean of the samples ``exp(mean log d)`` [m] (``default_depth`` without samples,
+    when the fill is that constant too). Everything is exported inside ``prior.onnx``: the runtime feeds the raw
+    sparse depth.
+
+    Args:
+        levels: pooling levels (H and W must be multiples of ``2 ** levels``).
+        default_depth: scale and fill [m] of an input without samples.
+
+    >>> f = SparseFill(levels=2)
+    >>> sp = torch.zeros(1, 1, 4, 4); sp[0, 0, 0, 0] = 2.0; sp[0, 0, 3, 3] = 8.0
+    >>> fill, mask, scale = f(sp)
+    >>> float(scale), float(fill[0, 0, 0, 0]), float(fill[0, 0, 3, 3]), int(mask.sum())
+    (4.0, 2.0, 8.0, 2)
+    """
+
+    def __init__(self, levels: int = 5, default_depth: float = 2.0):
+        super().__init__()
+        if levels < 0:
+            raise ValueError(f"levels={levels} must be >= 0")
+        self.levels = int(levels)
+        self.default_depth = float(default_depth)
+
+    def forward(self, sparse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        mask = (sparse > 0).to(sparse.dtype)  # (B, 1, H, W)
+        v = sparse * mask
+        n = mask.sum(dim=(2, 3), keepdim=True)  # (B, 1, 1, 1)
+        has = n > 0
+        logsum = (torch.log(sparse.clamp(min=1e-6)) * mask).sum(dim=(2, 3), keepdim=True)
+        default = torch.full_like(n, self.default_depth)
+        scale = torch.where(has, torch.exp(logsum / n.clamp(min=1.0)), default)
+        mean = torch.where(has, v.sum(dim=(2, 3), keepdim=True) / n.clamp(min=1.0), default)
+        ws, vs = [mask], [v]
+        for _ in range(self.levels):
+            ws.append(nn.functional.avg_pool2d(ws[-1], 2))
+            vs.append(nn.functional.avg_pool2d(vs[-1], 2))
+        fill = mean.expand_as(vs[-1])
+        for k in range(self.levels, -1, -1):
+            w, val = ws[k], vs[k]
+            if fill.shape[-2:] != w.shape[-2:]:
+                fill = nn.functional.interpolate(fill, size=w.shape[-2:], mode="bilinear", align_corners=False)
+            a = (w * float(4**k)).clamp(max=1.0)  # 1 in every cell that holds a sample
+            fill = a * (val / w.clamp(min=1e-12)) + (1.0 - a) * fill
+        return fill, mask, scale
+
+
+class RelativeSparseNorm(nn.Module):
+    """Raw ``*s`` input -> encoder input in units of the samples' scale, plus the fill and the scale.
+
+    Output channels: ``(image - mean) / std``, then ``log(sparse / scale)`` at samples (0 elsewhere, clamped to
+    +-``log_range``), the sample mask, and ``log(fill / scale)`` of :class:`SparseFill`. None of them changes
+    when every depth is multiplied by the same factor: the network sees relative depth only.
+
+    ``forward`` returns ``(x, fill (B, 1, H, W) [m], scale (B, 1, 1, 1) [m])``.
+    """
+
+    def __init__(self, modality: str, levels: int = 5, log_range: float = 3.0):
+        super().__init__()
+        if modality not in MODALITY_CHANNELS or not modality.endswith("s"):
+            raise ValueError(f"relative depth needs a sparse modality (grays, rgbs), got {modality!r}")
+        self.modality = modality
+        self.sparse = True
+        rgb = modality.startswith("rgb")
+        self.image_channels = 3 if rgb else 1
+        self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
+        self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
+        self.fill = SparseFill(levels)
+        self.log_range = float(log_range)
+        self.out_channels = self.image_channels + 3
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        img = (x[:, : self.image_channels] - self.mean) / self.std
+        sparse = x[:, self.image_channels : self.image_channels + 1]
+        fill, mask, scale = self.fill(sparse)
+        r = self.log_range
+        rel = torch.log(sparse.clamp(min=1e-6) / scale).clamp(-r, r) * mask
+        rel_fill = torch.log(fill.clamp(min=1e-6) / scale).clamp(-r, r)
+        return torch.cat([img, rel, mask, rel_fill], dim=1), fill, scale
+
+
 class LogDepthNorm(nn.Module):
     """Metric depth (0 = invalid) -> (log depth scaled to [-1, 1] and 0 where invalid, validity mask)."""
 
@@ -342,7 +430,9 @@ __all__ = [
     "InputNorm",
     "LogDepthNorm",
     "MobileNetEncoder",
+    "RelativeSparseNorm",
     "SKFusion",
+    "SparseFill",
     "SpatialAttention",
     "UpBlock",
     "check_size",

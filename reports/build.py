@@ -169,6 +169,38 @@ def _nb_line(path: Path, prefix: str) -> str | None:
 
 
 # ------------------------------------------------------------------------------------------------ sections
+def _protocol_tables(path: Path, what: str) -> list[str]:
+    """The shipped model against the interpolation of its own sparse points and the median GT, per frame set."""
+    d = _load(path)
+    p = d.get("protocol", {})
+    out = [
+        f"The shipped default model, {what} ({p.get('points')} FAST points, noise {p.get('noise_std_m')} m, "
+        f"outliers {_num(p.get('outlier_frac'), 0, 100, ' %')}, code c = 0), against the linear interpolation of "
+        "the same points (nearest outside their hull) and the per-image median of the true depth:",
+        "",
+    ]
+    rows = []
+    for name, r in d.get("sets", {}).items():
+        for row, m in r.get("rows", {}).items():
+            rows.append(
+                [f"{name} ({r.get('frames')})", row, _num(m.get("rmse")), _num(m.get("abs_rel")), _num(m.get("mae"))]
+                + [_num(m.get(k), 1, 100, " %") for k in ("delta1", "delta2", "delta3")]
+                + [_num(m.get("max_frame_abs_rel"))]
+            )
+    out += [
+        _table(["frames", "method", "RMSE [m]", "AbsRel", "MAE [m]", "δ1", "δ2", "δ3", "max frame AbsRel"], rows),
+        "",
+        _source_block(
+            [path],
+            "dit-eval depth model_dir=runtime/assets/default_model real=../shared/data/rgbd_real sim.n_val=40 "
+            f"protocol={p.get('name', 'gs')} out={path.relative_to(REPO).as_posix()}",
+            "see runtime/assets/default_model/README.md",
+        ),
+        "",
+    ]
+    return out
+
+
 def _table1() -> list[str]:
     out = ["## Table 1: depth networks x input modalities", ""]
     nb = REPO / "notebooks" / "01_depth_modalities.ipynb"
@@ -220,6 +252,10 @@ def _table1() -> list[str]:
             ),
             "",
         ]
+    for name, what in (("protocol_gs.json", "G-S protocol"), ("protocol_slam.json", "SLAM-like sparse input")):
+        pj = REPO / "runtime" / "assets" / "default_model" / name
+        if pj.is_file():
+            out += _protocol_tables(pj, what)
     mj = RESULTS / "models.json"
     if mj.is_file():
         d = _load(mj)

@@ -102,6 +102,11 @@ def run_ablation(
             r = _cell(out, v, m, overrides, force, eval_args)
             results[f"{v}_{m}"] = r
             rows[f"{MODALITIES[m]} / {VARIANTS[v]}"] = {**r["metrics"], "ms": r["ms"]}
+        itp = next(
+            (r["interpolation"] for k, r in results.items() if k.endswith(f"_{m}") and "interpolation" in r), None
+        )
+        if itp is not None:
+            rows[f"{MODALITIES[m]} / interpolation of the sparse input (reference)"] = itp
         med = next(r["median"] for k, r in results.items() if k.endswith(f"_{m}") and "median" in r)
         rows[f"{MODALITIES[m]} / median GT (reference)"] = med
     table = format_table(rows, first="modality / method")

@@ -7,6 +7,19 @@ with a data group (``data=nyu_h5 data.root=...``, ``data=nyu_mat data.mat_path=.
 single keys (``data.root=...``). Evaluation uses the validation transform (resize + centre crop) and, for
 ``*s`` modalities, exactly 125 noise-free FAST samples; the code is the prior mean (0), as in the SLAM system.
 
+Every table has the reference rows next to the network: the **interpolation** of the network's own sparse input
+(:func:`train.sparse.interpolate_sparse`: linear over the samples' triangulation, nearest outside their hull;
+``*s`` modalities) and the per-image **median** of the ground truth. A sparse-input network that does not beat
+the interpolation adds nothing to the points it was given.
+
+The paper's G-S protocol on other frames (:func:`evaluate_protocol`): ``model_dir=DIR`` (an exported model, ONNX
+Runtime, exactly what the SLAM system runs) or ``ckpt=PATH`` (torch, which also scores the posterior-mean code),
+on ``real=DIR`` (a folder of RGB-D frame folders in the ``rgbd_real`` layout, or one such folder;
+:mod:`runtime.io.rgbd_frames`) and on fresh synthetic validation rooms (``sim.seed``, ``sim.n_val``): 125 FAST
+corners with their true depth, no noise, network resolution, code c = 0. ``protocol=slam`` gives SLAM-like sparse
+input instead (30 points, 0.1 m noise, 5 % outliers). Per set: network, interpolation and median rows, and the
+largest per-frame AbsRel of each.
+
 ``ms/frame`` is the median wall time of a batch-1 forward pass on this machine (``timing_frames`` frames after
 ``timing_warmup``; torch, ``num_threads`` threads; ``device=cuda`` for a GPU).
 
@@ -27,13 +40,21 @@ import time
 from pathlib import Path
 
 import hydra
+import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
 from train.metrics import DepthMetrics, format_table
 
-__all__ = ["main", "evaluate_checkpoint", "load_network"]
+__all__ = [
+    "PROTOCOLS",
+    "evaluate_checkpoint",
+    "evaluate_protocol",
+    "interpolation_prediction",
+    "load_network",
+    "main",
+]
 
 log = logging.getLogger("train.evaluate")
 
@@ -94,6 +115,22 @@ def _data_config(
     return data
 
 
+def interpolation_prediction(image: torch.Tensor) -> torch.Tensor:
+    """The interpolation reference: :func:`train.sparse.interpolate_sparse` of the last input channel.
+
+    Args:
+        image: (B, Cin, H, W) network input whose last channel is the sparse depth [m] (0 = no sample).
+
+    Returns:
+        (B, 1, H, W) float32 [m].
+    """
+    from train.sparse import interpolate_sparse
+
+    sp = image[:, -1].detach().cpu().numpy()
+    out = np.stack([interpolate_sparse(x) for x in sp])[:, None]
+    return torch.from_numpy(out).to(image.device)
+
+
 @torch.inference_mode()
 def evaluate_checkpoint(
     ckpt: str | Path,
@@ -130,7 +167,8 @@ def evaluate_checkpoint(
     dm.setup("test" if split == "test" else "validate")
     loader = dm.test_dataloader() if split == "test" else dm.val_dataloader()
 
-    acc, med = DepthMetrics(), DepthMetrics()
+    acc, med, interp = DepthMetrics(), DepthMetrics(), DepthMetrics()
+    sparse_input = str(net_cfg.get("modality", "")).endswith("s")
     from train.module import _median_prediction
 
     timing_inputs = []
@@ -141,6 +179,8 @@ def evaluate_checkpoint(
         acc.update(out["depth"], gt)
         if median_baseline:
             med.update(_median_prediction(gt), gt)
+            if sparse_input:
+                interp.update(interpolation_prediction(image), gt)
         if len(timing_inputs) < timing_warmup + timing_frames:
             timing_inputs.extend(image[i : i + 1] for i in range(image.shape[0]))
     times = []
@@ -180,7 +220,173 @@ def evaluate_checkpoint(
     }
     if median_baseline:
         result["median"] = med.compute()
+        if sparse_input:
+            result["interpolation"] = interp.compute()
     return result
+
+
+#: Sparse input of the protocols: (points, noise std [m], outlier fraction). ``gs``: the paper's G-S protocol.
+PROTOCOLS: dict[str, tuple[int, float, float]] = {"gs": (125, 0.0, 0.0), "slam": (30, 0.1, 0.05)}
+
+
+class _OnnxPredictor:
+    """An exported model directory under ONNX Runtime: ``(B, Cin, H, W)`` input -> depth (B, 1, H, W) at c = 0."""
+
+    def __init__(self, model_dir: str | Path, threads: int = 1):
+        from runtime.network import DepthNetwork, SessionConfig
+
+        self.net = DepthNetwork(model_dir, SessionConfig(threads=threads))
+        self.modality, self.height, self.width = self.net.modality, self.net.height, self.net.width
+        self.code = np.zeros(self.net.code_dim, np.float32)
+
+    def __call__(self, image: torch.Tensor, gt: torch.Tensor) -> dict[str, torch.Tensor]:
+        x = image.numpy()
+        out = []
+        n_img = 3 if self.modality.startswith("rgb") else 1
+        for xi in x:
+            img = xi[:n_img].transpose(1, 2, 0) if n_img == 3 else xi[0]
+            sparse = xi[-1] if self.net.uses_sparse else None
+            out.append(self.net.prior(img, sparse).depth(self.code))
+        return {"network": torch.from_numpy(np.stack(out)[:, None])}
+
+
+class _TorchPredictor:
+    """A checkpoint under torch: depth at c = 0 and with the posterior mean of the ground truth (oracle)."""
+
+    def __init__(self, ckpt: str | Path, device: str = "cpu"):
+        self.net, cfg, _ = load_network(ckpt, device)
+        self.modality, self.height, self.width = cfg["modality"], int(cfg["height"]), int(cfg["width"])
+        self.device = device
+
+    def __call__(self, image: torch.Tensor, gt: torch.Tensor) -> dict[str, torch.Tensor]:
+        x, g = image.to(self.device), gt.to(self.device)
+        out = {"network": self.net(x)["depth"].cpu()}
+        if hasattr(self.net, "recognition"):
+            out["network, posterior-mean code (oracle)"] = self.net(x, gt_depth=g)["depth"].cpu()
+        return out
+
+
+@torch.inference_mode()
+def evaluate_protocol(
+    predict,
+    sets: dict[str, object],
+    batch_size: int = 8,
+) -> dict[str, dict]:
+    """Score a predictor and the reference rows on frame sets (each a dataset of the validation transform).
+
+    Args:
+        predict: ``(image (B, Cin, H, W), gt (B, 1, H, W)) -> {row name: depth (B, 1, H, W) [m]}``.
+        sets: name -> dataset yielding ``image`` and ``depth`` (:class:`train.data.NyuFrames`).
+        batch_size: frames per call.
+
+    Returns:
+        name -> ``{"frames", "rows": {row: metrics + "max_frame_abs_rel"}}``; rows: the predictor's, then
+        ``interpolation`` (sparse modalities) and ``median GT``.
+    """
+    from torch.utils.data import DataLoader
+
+    from train.module import _median_prediction
+
+    results = {}
+    for name, ds in sets.items():
+        accs: dict[str, DepthMetrics] = {}
+        worst: dict[str, float] = {}
+        frames = 0
+        for batch in DataLoader(ds, batch_size=batch_size, shuffle=False):
+            image, gt = batch["image"], batch["depth"]
+            rows = dict(predict(image, gt))
+            if image.shape[1] in (2, 4):
+                rows["interpolation"] = interpolation_prediction(image)
+            rows["median GT"] = _median_prediction(gt)
+            for row, pred in rows.items():
+                m = accs.setdefault(row, DepthMetrics()).update(pred.float(), gt)
+                worst[row] = max(worst.get(row, 0.0), float(m["abs_rel"][m["n"] > 0].max()))
+            frames += image.shape[0]
+        results[name] = {
+            "frames": frames,
+            "rows": {row: {**acc.compute(), "max_frame_abs_rel": worst[row]} for row, acc in accs.items()},
+        }
+    return results
+
+
+def _protocol_sets(cfg: DictConfig, modality: str, height: int, width: int) -> dict[str, object]:
+    from runtime.io.rgbd_frames import RgbdFolder
+    from train.augment import FrameTransform
+    from train.data import NyuFrames, NyuH5Dataset, ensure_synthetic_nyu
+    from train.sparse import SparseConfig
+
+    if str(cfg.protocol) not in PROTOCOLS:
+        raise ValueError(f"protocol={cfg.protocol} not in {sorted(PROTOCOLS)}")
+    num, noise, outliers = PROTOCOLS[str(cfg.protocol)]
+    sparse = SparseConfig(num_eval=num, eval_noise_std=noise, eval_outlier_frac=outliers)
+    tf = FrameTransform(height, width, modality, False, None, sparse)
+    seed = int(cfg.seed)
+    sets = {}
+    sim = cfg.get("sim") or {}
+    if int(sim.get("n_val") or 0) > 0:
+        root = ensure_synthetic_nyu(sim.get("root"), 1, int(sim.n_val), int(sim.seed))
+        sets[f"synthetic val (dit-sim nyu seed {int(sim.seed)})"] = NyuH5Dataset(
+            root, "val", tf, seed, cfg.get("limit")
+        )
+    if cfg.get("real"):
+        real = Path(str(cfg.real)).expanduser()
+        if not real.is_dir():
+            raise FileNotFoundError(f"real={real}: no such folder")
+        if any(real.glob("frame-*.color.*")):
+            folders = [real]
+        else:
+            folders = sorted(p for p in real.iterdir() if p.is_dir() and any(p.glob("frame-*.color.*")))
+        for f in folders:
+            sets[f"real {f.name}"] = NyuFrames(RgbdFolder(f, cfg.get("limit")), tf, seed)
+    if not sets:
+        raise ValueError("nothing to evaluate: give real=DIR and/or sim.n_val=N")
+    return sets
+
+
+def run_protocol(cfg: DictConfig) -> dict:
+    """``dit-eval depth [model_dir=DIR | ckpt=PATH] real=DIR sim.n_val=N protocol=gs|slam``: print and write JSON."""
+    if cfg.get("model_dir"):
+        predict = _OnnxPredictor(cfg.model_dir, threads=int(cfg.get("num_threads") or 1))
+        source = str(cfg.model_dir)
+    elif cfg.get("ckpt"):
+        predict = _TorchPredictor(cfg.ckpt, str(cfg.device))
+        source = str(cfg.ckpt)
+    else:
+        raise ValueError("model_dir=DIR (exported) or ckpt=PATH is required")
+    sets = _protocol_sets(cfg, predict.modality, predict.height, predict.width)
+    num, noise, outliers = PROTOCOLS[str(cfg.protocol)]
+    res = {
+        "source": source,
+        "protocol": {
+            "name": str(cfg.protocol),
+            "points": num,
+            "noise_std_m": noise,
+            "outlier_frac": outliers,
+            "code": "c = 0 (network row)",
+            "resolution": [predict.height, predict.width],
+            "seed": int(cfg.seed),
+        },
+        "sets": evaluate_protocol(predict, sets, int(cfg.batch_size)),
+    }
+    print(
+        f"\nDepth of {source} ({predict.modality}, {predict.height}x{predict.width}), protocol {cfg.protocol}: "
+        f"{num} FAST points, noise {noise} m, outliers {outliers:.0%}, code c = 0\n"
+    )
+    for name, r in res["sets"].items():
+        print(f"{name}: {r['frames']} frames")
+        rows = {row: m for row, m in r["rows"].items()}
+        print(format_table(rows, first="method"))
+        print(
+            "max per-frame AbsRel: "
+            + ", ".join(f"{row} {m['max_frame_abs_rel']:.3f}" for row, m in rows.items())
+            + "\n"
+        )
+    if cfg.get("out"):
+        out = Path(cfg.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=2))
+        print(f"wrote {out}")
+    return res
 
 
 def table_rows(results: list[dict]) -> dict[str, dict]:
@@ -194,6 +400,8 @@ def table_rows(results: list[dict]) -> dict[str, dict]:
 def run(cfg: DictConfig, data_keys: list[str] | None = None) -> dict:
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
+    if cfg.get("model_dir") or cfg.get("real") or int((cfg.get("sim") or {}).get("n_val") or 0) > 0:
+        return run_protocol(cfg)
     if not cfg.get("ckpt"):
         raise ValueError("ckpt=PATH is required (a checkpoint written by train/fit.py)")
     res = evaluate_checkpoint(
@@ -210,6 +418,8 @@ def run(cfg: DictConfig, data_keys: list[str] | None = None) -> dict:
     if cfg.get("modality") is not None and cfg.modality.name != res["modality"]:
         raise ValueError(f"modality={cfg.modality.name} but the checkpoint was trained on {res['modality']}")
     rows = table_rows([res])
+    if "interpolation" in res:
+        rows["interpolation of the sparse input (reference)"] = res["interpolation"]
     if "median" in res:
         rows["median GT (reference)"] = res["median"]
     print(

@@ -163,6 +163,8 @@ def train(cfg: DictConfig) -> dict:
         rows = {name: {k: metrics[f"val/{k}"] for k in METRICS}}
         if "val/ms_per_frame" in metrics:
             rows[name]["ms"] = metrics["val/ms_per_frame"]
+        if "val_interp/rmse" in metrics:
+            rows["interpolation of the sparse input (reference)"] = {k: metrics[f"val_interp/{k}"] for k in METRICS}
         if "val_median/rmse" in metrics:
             rows["median GT (reference)"] = {k: metrics[f"val_median/{k}"] for k in METRICS}
         src = "best checkpoint" if metrics["weights"] != "final" else "final weights"

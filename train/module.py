@@ -12,7 +12,8 @@ test:
 * val / test: the inference path of the SLAM system: the image alone, code = 0 (the prior mean). Logged:
   ``<stage>/loss`` (Eq. 6 or L1 at the prior code), the depth metrics of :mod:`train.metrics` over the whole
   set (all-reduced in DDP), ``<stage>/ms_per_frame`` (forward time / batch size), and the metrics of the
-  per-image median ground-truth depth as a reference (``<stage>_median/rmse`` ...).
+  per-image median ground-truth depth as a reference (``<stage>_median/rmse`` ...) and, for sparse modalities,
+  those of the interpolated sparse input (``<stage>_interp/rmse`` ...).
 
 Images of the first validation batch (input with the sparse samples, GT depth, predicted depth, uncertainty,
 absolute error) are written after every validation to ``<run dir>/images/val_step<step>.png`` and sent to a
@@ -88,6 +89,8 @@ def net_spec(net: nn.Module) -> dict:
     }
     if name == "dit":
         spec["code_dim"] = getattr(net, "code_dim", None)
+        if getattr(net, "relative", False):
+            spec["relative"] = True
     return spec
 
 
@@ -131,6 +134,7 @@ class DepthModule(L.LightningModule):
         self.scheduler_factory = scheduler
         self.metrics = {"val": DepthMetrics(), "test": DepthMetrics()}
         self.median = {"val": DepthMetrics(), "test": DepthMetrics()}
+        self.interp = {"val": DepthMetrics(), "test": DepthMetrics()}
         self._time = {"val": [0.0, 0], "test": [0.0, 0]}
         #: build_model kwargs and the resolved run config, stored in checkpoints (set by train/fit.py).
         self.net_config: dict | None = None
@@ -178,6 +182,10 @@ class DepthModule(L.LightningModule):
         self.metrics[stage].update(out["depth"], gt)
         if self.hparams.median_baseline:
             self.median[stage].update(_median_prediction(gt), gt)
+            if getattr(self.net, "modality", "").endswith("s"):
+                from train.evaluate import interpolation_prediction
+
+                self.interp[stage].update(interpolation_prediction(image), gt)
         return loss, out
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
@@ -195,6 +203,7 @@ class DepthModule(L.LightningModule):
     def _eval_start(self, stage: str) -> None:
         self.metrics[stage].reset()
         self.median[stage].reset()
+        self.interp[stage].reset()
         self._time[stage] = [0.0, 0]
 
     def _eval_end(self, stage: str) -> None:
@@ -209,6 +218,9 @@ class DepthModule(L.LightningModule):
         if self.hparams.median_baseline:
             med = reduced(self.median[stage])
             self.log_dict({f"{stage}_median/{k}": v for k, v in med.items()}, sync_dist=True)
+            if self.interp[stage].count:
+                itp = reduced(self.interp[stage])
+                self.log_dict({f"{stage}_interp/{k}": v for k, v in itp.items()}, sync_dist=True)
         t, n = self._time[stage]
         if n:
             self.log(f"{stage}/ms_per_frame", 1000.0 * t / n, sync_dist=True)

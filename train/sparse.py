@@ -12,6 +12,10 @@ ground-truth depth is read there:
   every image gets the same count; fewer than ``num_eval`` samples are returned only when the image has fewer
   valid pixels.
 
+SLAM-like input (optional): ``outlier_frac`` (training) or ``eval_outlier_frac`` (evaluation) of the samples get
+a wrong depth (the true one times ``exp(U(-1, 1))``, a mis-triangulated map point), and at evaluation
+``eval_noise_std`` adds noise as in training.
+
 Corners without valid ground truth (depth 0) are never sampled. The sparse channel is a float32 (H, W) map in
 metres with 0 everywhere except at sampled pixels. Randomness comes only from the ``rng`` argument, so a
 sample is reproducible from its seed.
@@ -24,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["SparseConfig", "fast_corners", "sample_sparse_depth", "MIN_SPARSE_DEPTH"]
+__all__ = ["SparseConfig", "fast_corners", "interpolate_sparse", "sample_sparse_depth", "MIN_SPARSE_DEPTH"]
 
 #: Smallest sparse depth [m] written after adding noise (0 means "no sample").
 MIN_SPARSE_DEPTH = 1e-3
@@ -40,6 +44,9 @@ class SparseConfig:
         noise_std: std of the Gaussian noise added in training [m] (paper: 0.1).
         fast_threshold: FAST intensity threshold (grey levels, 0-255).
         fill: at evaluation, fill up with random valid pixels when there are fewer than ``num_eval`` corners.
+        outlier_frac: fraction of training samples whose depth is multiplied by ``exp(U(-1, 1))``.
+        eval_noise_std: std of the Gaussian noise added at evaluation [m] (the paper's protocol: 0).
+        eval_outlier_frac: ``outlier_frac`` at evaluation (the paper's protocol: 0).
     """
 
     num_eval: int = 125
@@ -47,13 +54,20 @@ class SparseConfig:
     noise_std: float = 0.1
     fast_threshold: int = 10
     fill: bool = True
+    outlier_frac: float = 0.0
+    eval_noise_std: float = 0.0
+    eval_outlier_frac: float = 0.0
 
     def __post_init__(self) -> None:
         lo, hi = self.train_num
         if self.num_eval < 0 or lo < 0 or hi < lo:
             raise ValueError(f"bad sparse counts num_eval={self.num_eval}, train_num={self.train_num}")
-        if self.noise_std < 0:
-            raise ValueError(f"noise_std={self.noise_std} must be >= 0")
+        if self.noise_std < 0 or self.eval_noise_std < 0:
+            raise ValueError(f"noise_std={self.noise_std}, eval_noise_std={self.eval_noise_std} must be >= 0")
+        if not (0 <= self.outlier_frac <= 1 and 0 <= self.eval_outlier_frac <= 1):
+            raise ValueError(
+                f"outlier_frac={self.outlier_frac}, eval_outlier_frac={self.eval_outlier_frac} not in [0, 1]"
+            )
         if not 0 < self.fast_threshold < 256:
             raise ValueError(f"fast_threshold={self.fast_threshold} must be in 1..255")
 
@@ -130,10 +144,56 @@ def sample_sparse_depth(
             extra = cand[np.sort(rng.choice(len(cand), size=min(k - len(uv), len(cand)), replace=False))]
             uv = np.concatenate([uv, np.stack([extra % w, extra // w], axis=1)], axis=0)
     values = depth[uv[:, 1], uv[:, 0]].astype(np.float32)
-    if train and cfg.noise_std > 0 and len(uv):
-        values = np.maximum(
-            values + rng.normal(0.0, cfg.noise_std, len(uv)).astype(np.float32), MIN_SPARSE_DEPTH
-        )
+    outliers = cfg.outlier_frac if train else cfg.eval_outlier_frac
+    if outliers > 0 and len(uv):
+        bad = rng.random(len(uv)) < outliers
+        values = np.where(bad, values * np.exp(rng.uniform(-1.0, 1.0, len(uv))), values).astype(np.float32)
+    noise = cfg.noise_std if train else cfg.eval_noise_std
+    if noise > 0 and len(uv):
+        values = np.maximum(values + rng.normal(0.0, noise, len(uv)).astype(np.float32), MIN_SPARSE_DEPTH)
     sparse = np.zeros((h, w), np.float32)
     sparse[uv[:, 1], uv[:, 0]] = values
     return sparse, uv
+
+
+def interpolate_sparse(sparse: np.ndarray) -> np.ndarray:
+    """The reference densification: linear interpolation of the samples, nearest sample outside their hull.
+
+    ``scipy.interpolate.griddata`` over the Delaunay triangulation of the sampled pixels (``linear``), and
+    ``nearest`` where that is undefined. Every depth table compares the network against this row: a network
+    with sparse input has to beat what its own input gives without it.
+
+    Args:
+        sparse: (H, W) float [m], 0 = no sample.
+
+    Returns:
+        (H, W) float32 [m]; all zeros when there is no sample, the constant when there is one.
+
+    >>> s = np.zeros((3, 5), np.float32); s[1, 0], s[1, 4] = 1.0, 3.0
+    >>> interpolate_sparse(s)[1].tolist()  # two points: no hull, nearest
+    [1.0, 1.0, 1.0, 3.0, 3.0]
+    >>> s = np.zeros((3, 3), np.float32); s[0, 0], s[0, 2], s[2, 0], s[2, 2] = 1.0, 1.0, 3.0, 3.0
+    >>> interpolate_sparse(s)[1].tolist()  # rows 0 and 2 bound the hull, row 1 halfway
+    [2.0, 2.0, 2.0]
+    """
+    from scipy.interpolate import griddata
+
+    if sparse.ndim != 2:
+        raise ValueError(f"sparse must be (H, W), got shape {sparse.shape}")
+    h, w = sparse.shape
+    v, u = np.nonzero(sparse > 0)
+    if len(u) == 0:
+        return np.zeros((h, w), np.float32)
+    vals = sparse[v, u].astype(np.float64)
+    if len(u) == 1:
+        return np.full((h, w), vals[0], np.float32)
+    gv, gu = np.mgrid[0:h, 0:w]
+    pts = np.stack([u, v], axis=1).astype(np.float64)
+    near = griddata(pts, vals, (gu, gv), method="nearest")
+    if len(u) < 3:
+        return near.astype(np.float32)
+    try:
+        lin = griddata(pts, vals, (gu, gv), method="linear")
+    except Exception:  # scipy's QhullError: all points on a line
+        return near.astype(np.float32)
+    return np.where(np.isfinite(lin), lin, near).astype(np.float32)

@@ -106,7 +106,9 @@ print(f"{n_tr} train + {n_va} val frames in {data_root} ({time.time() - t0:.0f} 
 # (log: `OUT/ablation/<variant>_<modality>.log`), then the best checkpoint is evaluated on all validation
 # frames. A cell that finished before (its `eval_depth.json` exists) is not trained again unless
 # `FORCE = True`. The *median GT* rows score a constant prediction equal to each image's median ground-truth
-# depth (a reference that knows the scale).
+# depth (a reference that knows the scale). `train.ablation` now also adds, for the sparse modalities, the
+# *interpolation* of each cell's own 125 points (linear, nearest outside their hull), the bar a sparse-input
+# network has to clear; the committed outputs below predate that row (re-run to get it).
 
 # %%
 overrides = [

@@ -194,10 +194,11 @@ def test_ablation_two_cells(fake_nyu, tmp_path):
     assert [ln.split(" | ")[0] for ln in lines[2:]] == [
         "| G-S / FastDepth",
         "| G-S / Ours (DiT)",
+        "| G-S / interpolation of the sparse input (reference)",
         "| G-S / median GT (reference)",
     ]
     assert set(s["cells"]) == {"dit_grays", "fastdepth_grays"}
-    assert (tmp_path / "abl" / "ablation.md").read_text().count("G-S /") == 3
+    assert (tmp_path / "abl" / "ablation.md").read_text().count("G-S /") == 4
     again = run_ablation(
         tmp_path / "abl", over + ["trainer.max_steps=2"], ["dit"], ["grays"], timing_frames=2
     )

@@ -76,3 +76,43 @@ def test_bad_inputs():
         fast_corners(img.astype(np.float32))
     with pytest.raises(ValueError, match="train_num"):
         SparseConfig(train_num=(5, 2))
+
+
+def test_interpolate_sparse_known_answers():
+    from train.sparse import interpolate_sparse
+
+    # a plane d = 1 + 0.1 u + 0.05 v sampled at scattered pixels is reproduced inside the hull
+    rng = np.random.default_rng(0)
+    h, w = 40, 50
+    s = np.zeros((h, w), np.float32)
+    u, v = rng.integers(0, w, 60), rng.integers(0, h, 60)
+    s[v, u] = 1 + 0.1 * u + 0.05 * v
+    cu, cv = np.array([0, w - 1, 0, w - 1]), np.array([0, 0, h - 1, h - 1])
+    s[cv, cu] = 1 + 0.1 * cu + 0.05 * cv  # the corners: the hull is the whole image
+    gv, gu = np.mgrid[0:h, 0:w]
+    np.testing.assert_allclose(interpolate_sparse(s), 1 + 0.1 * gu + 0.05 * gv, rtol=1e-5)
+    # outside the hull: the nearest sample; no sample: zeros; one sample: constant
+    s = np.zeros((10, 10), np.float32)
+    s[2, 2], s[2, 5], s[5, 2] = 1.0, 2.0, 3.0
+    out = interpolate_sparse(s)
+    assert out[9, 9] in (2.0, 3.0) and out[0, 0] == 1.0 and out[2, 3] == pytest.approx(1 + 1 / 3, rel=1e-5)
+    assert not interpolate_sparse(np.zeros((4, 4), np.float32)).any()
+    one = np.zeros((4, 4), np.float32)
+    one[1, 1] = 2.5
+    assert (interpolate_sparse(one) == 2.5).all()
+
+
+def test_slam_like_eval_noise_and_outliers():
+    g = np.zeros((64, 64), np.uint8)
+    d = np.full((64, 64), 4.0, np.float32)
+    cfg = SparseConfig(num_eval=200, eval_noise_std=0.0, eval_outlier_frac=0.5, outlier_frac=0.0)
+    s, uv = sample_sparse_depth(g, d, np.random.default_rng(0), False, cfg)
+    vals = s[uv[:, 1], uv[:, 0]]
+    bad = np.abs(vals - 4.0) > 1e-6
+    assert 0.35 < bad.mean() < 0.65  # about half moved ...
+    assert vals.min() >= 4.0 / np.e - 1e-5 and vals.max() <= 4.0 * np.e + 1e-5  # ... by a factor within e^(+-1)
+    cfg = SparseConfig(num_eval=200, eval_noise_std=0.1)
+    s, uv = sample_sparse_depth(g, d, np.random.default_rng(0), False, cfg)
+    assert 0.07 < float(np.std(s[uv[:, 1], uv[:, 0]])) < 0.13
+    with pytest.raises(ValueError, match="outlier_frac"):
+        SparseConfig(outlier_frac=1.5)

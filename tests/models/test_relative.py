@@ -1,0 +1,157 @@
+"""Relative-depth DiT: the in-graph densification and normalisation (known answers), scale equivariance,
+and torch vs ONNX Runtime agreement of both."""
+
+import numpy as np
+import pytest
+import torch
+
+from models import build_model
+from models.blocks import RelativeSparseNorm, SparseFill
+
+torch.set_num_threads(1)
+
+H, W = 64, 96
+
+
+def _sparse(b=2, seed=0, p=0.03, lo=0.5, hi=5.0, h=H, w=W):
+    g = torch.Generator().manual_seed(seed)
+    keep = torch.rand(b, 1, h, w, generator=g) < p
+    return keep * (lo + (hi - lo) * torch.rand(b, 1, h, w, generator=g))
+
+
+def test_fill_constant_single_and_samples_kept():
+    f = SparseFill(levels=5)
+    sp = _sparse()
+    const = (sp > 0) * 3.0
+    fill, mask, scale = f(const)
+    assert torch.allclose(fill, torch.full_like(fill, 3.0), atol=1e-5)
+    assert torch.allclose(scale, torch.full_like(scale, 3.0), atol=1e-5)
+    one = torch.zeros(1, 1, H, W)
+    one[0, 0, 10, 20] = 1.7
+    fill1, mask1, _ = f(one)
+    assert int(mask1.sum()) == 1 and torch.allclose(fill1, torch.full_like(fill1, 1.7), atol=1e-6)
+    fill, mask, _ = f(sp)
+    hit = sp > 0
+    assert torch.allclose(fill[hit], sp[hit], atol=1e-5)  # the samples themselves are kept
+    assert float(fill.min()) >= float(sp[hit].min()) - 1e-5 and float(fill.max()) <= float(sp.max()) + 1e-5
+
+
+def test_fill_no_samples_and_geometric_scale():
+    f = SparseFill(levels=3, default_depth=2.0)
+    fill, mask, scale = f(torch.zeros(1, 1, 32, 32))
+    assert float(mask.sum()) == 0 and torch.allclose(fill, torch.full_like(fill, 2.0))
+    assert float(scale) == pytest.approx(2.0)
+    sp = torch.zeros(1, 1, 32, 32)
+    sp[0, 0, 1, 1], sp[0, 0, 30, 30], sp[0, 0, 5, 25] = 1.0, 4.0, 2.0
+    assert float(f(sp)[2]) == pytest.approx(2.0, rel=1e-6)  # (1 * 4 * 2) ** (1/3)
+
+
+def test_fill_is_linear_in_depth_and_between_neighbours():
+    f = SparseFill(levels=5)
+    sp = _sparse(seed=3)
+    a, _, sa = f(sp)
+    b, _, sb = f(2.5 * sp)
+    assert torch.allclose(b, 2.5 * a, rtol=1e-5) and torch.allclose(sb, 2.5 * sa, rtol=1e-5)
+    # a left half at 1 m, a right half at 3 m: the fill stays 1 far left, 3 far right
+    sp = torch.zeros(1, 1, 64, 64)
+    sp[0, 0, ::8, 2:28:8] = 1.0
+    sp[0, 0, ::8, 36:64:8] = 3.0
+    fill = f(sp)[0][0, 0]
+    assert torch.allclose(fill[:, :8], torch.ones(64, 8), atol=1e-4)
+    assert torch.allclose(fill[:, 56:], torch.full((64, 8), 3.0), atol=1e-4)
+
+
+def test_relative_norm_is_scale_free():
+    norm = RelativeSparseNorm("grays")
+    x = torch.cat([torch.rand(2, 1, H, W), _sparse()], 1)
+    y, fill, scale = norm(x)
+    x2 = x.clone()
+    x2[:, -1] *= 2.0
+    y2, fill2, scale2 = norm(x2)
+    assert y.shape == (2, 4, H, W)
+    assert torch.allclose(y, y2, atol=1e-5)
+    assert torch.allclose(fill2, 2 * fill, rtol=1e-5) and torch.allclose(scale2, 2 * scale, rtol=1e-5)
+    with pytest.raises(ValueError, match="sparse modality"):
+        RelativeSparseNorm("gray")
+
+
+def _relative_net(seed=0):
+    torch.manual_seed(seed)
+    net = build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True)
+    with torch.no_grad():  # a decoder that visibly depends on the input and the code
+        net.decoder.head.weight.normal_(0.0, 0.05)
+        for m in net.decoder.modules():  # as benchmarks.common.standin_net: the decoder's statistics only
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.momentum = None
+        net.decoder.train()
+        for _ in range(3):
+            x = torch.cat([torch.rand(4, 1, H, W), _sparse(4)], 1)
+            net(x, code=torch.randn(4, 8))
+    return net.eval()
+
+
+def test_scale_every_input_depth_by_two():
+    """A network that ignores the scale of its sparse input fails this."""
+    net = _relative_net()
+    x = torch.cat([torch.rand(2, 1, H, W), _sparse()], 1)
+    x2 = x.clone()
+    x2[:, -1] *= 2.0
+    code = torch.randn(2, 8)
+    with torch.no_grad():
+        a, b = net(x, code=code), net(x2, code=code)
+    assert torch.allclose(b["depth"], 2 * a["depth"], rtol=2e-3)  # float32 round-off through the net
+    assert torch.allclose(b["uncertainty"], 2 * a["uncertainty"], rtol=1e-4)
+    # ... and the code still moves the depth
+    with torch.no_grad():
+        c = net(x, code=code + 1.0)["depth"]
+    assert float((c - a["depth"]).abs().mean()) > 1e-3
+    # an absolute-depth network does not have the property (the test has teeth)
+    torch.manual_seed(0)
+    absn = build_model("dit", "grays", width_mult=0.25, height=H, width=W).eval()
+    with torch.no_grad():
+        da, db = absn(x)["depth"], absn(x2)["depth"]
+    assert not torch.allclose(db, 2 * da, rtol=1e-2)
+
+
+def test_relative_training_step_and_describe():
+    net = _relative_net().train()
+    x = torch.cat([torch.rand(2, 1, H, W), _sparse()], 1)
+    gt = 0.5 + 4.5 * torch.rand(2, 1, H, W)
+    out = net(x, gt_depth=gt)
+    assert out["mu"].shape == (2, 8)
+    loss = (out["depth"] - gt).abs().mean() + out["mu"].square().mean()
+    loss.backward()
+    assert net.recognition.fc.weight.grad is not None
+    d = net.describe()
+    assert d["relative"] is True and "fill" in d["depth"]["parametrisation"]
+    assert d["feature_shapes"][-1][0] == net.prior_net.channels[-1] + 1
+    assert not build_model("dit", "gray", width_mult=0.25, height=H, width=W, relative=True).relative
+    with pytest.raises(ValueError, match="relative=True"):
+        build_model("codevio8", "grays", width_mult=0.25, height=H, width=W, relative=True)
+
+
+def test_onnx_agrees_on_fill_scale_and_depth(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from export.onnx import export_network
+    from runtime.network import DepthNetwork
+
+    net = _relative_net()
+    export_network(net, tmp_path, modality="grays", height=H, width=W)
+    dn = DepthNetwork(tmp_path)
+    rng = np.random.default_rng(0)
+    grey = rng.random((H, W)).astype(np.float32)
+    sparse = np.where(rng.random((H, W)) < 0.03, rng.uniform(0.3, 1.4, (H, W)), 0).astype(np.float32)
+    code = rng.normal(size=8).astype(np.float32)
+    kf, kf2 = dn.prior(grey, sparse), dn.prior(grey, 2 * sparse)
+    x = torch.from_numpy(np.stack([grey, sparse])[None])
+    with torch.no_grad():
+        unc_t, feats = net.prior(x)
+        d_t = net.decoder(torch.from_numpy(code[None]), *feats)[0, 0].numpy()
+        fill_t = net.prior_net.norm.fill(x[:, 1:])[0][0, 0].numpy()
+    log_fill_o = kf.features[dn.feature_names[-1]][0, -1]
+    np.testing.assert_allclose(np.exp(log_fill_o), fill_t, rtol=1e-5)  # densification in the graph
+    np.testing.assert_allclose(kf.depth(code), d_t, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(kf.uncertainty, unc_t[0, 0].numpy(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(kf2.depth(code), 2 * kf.depth(code), rtol=1e-4)  # the scale test, in ONNX
+    _, J = kf.jacobian(code)
+    assert J.shape == (H, W, 8) and np.linalg.matrix_rank(J.reshape(-1, 8)) == 8

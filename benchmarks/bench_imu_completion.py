@@ -15,14 +15,13 @@ axis; the 3-D norm is about ``sqrt(3)`` times that). Prints a table and writes
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO
+from benchmarks.common import REPO, write_json
 
 
 def preintegration_errors(root: Path, window_s: float = 1.0) -> dict:
@@ -123,8 +122,7 @@ def main(argv: list[str] | None = None) -> dict:
         "(a 3-D norm's median is about 1.5 sigma)"
     )
     res = {"source": str(src), "window_s": args.window, "variants": rows}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+    write_json(args.out, res)
     print(f"wrote {args.out}")
     return res
 

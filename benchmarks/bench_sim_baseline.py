@@ -14,27 +14,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import REPO
+from benchmarks.common import REPO, cpu_model, write_json
 
 MH05 = REPO.parent / "shared" / "data" / "euroc_MH_05_excerpt"
 BIN = Path(sys.executable).parent
 
 
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def run_slam(seq: Path, out: Path) -> dict:
@@ -136,16 +127,15 @@ def main(argv: list[str] | None = None) -> dict:
                 }
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-    print(f"\nsparse dit-slam baseline ({_cpu()}; synthetic: {args.duration:g} s, scale {args.scale:g})")
+    print(f"\nsparse dit-slam baseline ({cpu_model()}; synthetic: {args.duration:g} s, scale {args.scale:g})")
     print(f"{'sequence':32s} {'seed':>4s} {'ATE SE3 [m]':>12s} {'init after [s]':>14s} {'posed':>9s}  note")
     for r in rows:
         ate = f"{r['ate_se3_rmse_m']:.4f}" if "ate_se3_rmse_m" in r else "-"
         init = f"{r['initialised_after_s']:.1f}" if r.get("initialised_after_s") is not None else "-"
         posed = f"{r.get('frames_with_pose', 0)}/{r.get('frames', 0)}"
         print(f"{r['preset']:32s} {r['seed']:4d} {ate:>12s} {init:>14s} {posed:>9s}  {r.get('error') or ''}")
-    res = {"cpu": _cpu(), "duration_s": args.duration, "scale": args.scale, "sim_set": args.sim_set, "rows": rows}
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+    res = {"cpu": cpu_model(), "duration_s": args.duration, "scale": args.scale, "sim_set": args.sim_set, "rows": rows}
+    write_json(args.out, res)
     print(f"wrote {args.out}")
     return res
 

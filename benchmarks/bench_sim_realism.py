@@ -28,14 +28,12 @@ Prints a table and writes ``benchmarks/results/bench_sim_realism.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from benchmarks.common import REPO
+from benchmarks.common import REPO, write_json
 
 #: EuRoC V1_01_easy, MAV on the ground with rotors on (the issue's figures).
 REAL_IMU = {
@@ -329,8 +327,7 @@ def main(argv: list[str] | None = None) -> dict:
         "sim_images_pooled": sim,
         "seconds": time.perf_counter() - t0,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+    write_json(args.out, res)
     print(f"wrote {args.out} ({res['seconds']:.0f} s)")
     return res
 

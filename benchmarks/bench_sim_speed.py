@@ -11,14 +11,12 @@ is reported. Prints a table and writes ``benchmarks/results/bench_sim_speed.json
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO
+from benchmarks.common import REPO, write_json
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -65,8 +63,7 @@ def main(argv: list[str] | None = None) -> dict:
             "frames": len(ta),
         }
         print(f"{preset:10s} {np.median(ta) * 1e3:11.1f} {np.median(tb) * 1e3:13.1f} {ratio:6.2f}")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+    write_json(args.out, res)
     print(f"wrote {args.out}")
     return res
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim.scenes import Scene
-from sim.trajectory import _sines, euler_to_R_w_c, smooth_step
+from sim.trajectory import PoseCurve, camera_rates, euler_to_R_w_c, sines, smooth_step
 
 __all__ = ["MotionTrajectory", "make_motion_trajectory", "look_at"]
 
@@ -34,7 +34,7 @@ def look_at(p: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class MotionTrajectory:
+class MotionTrajectory(PoseCurve):
     """A smooth camera trajectory of a realistic preset (all parameters fixed; evaluate at any time).
 
     Attributes:
@@ -72,56 +72,25 @@ class MotionTrajectory:
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         if self.kind == "tabletop":
             tau = t + self.t_offset
-            s = _sines(tau, *self.pos)
+            s = sines(tau, *self.pos)
             az = self.yaw0 + s[:, 0]
             el = self.base[0] + s[:, 1]
             r = self.base[1] + s[:, 2]
             d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1)
             p = self.center + r[:, None] * d
-            target = self.center + _sines(tau, *self.ang)
+            target = self.center + sines(tau, *self.ang)
             return look_at(p, target), p
         if self.kind == "flight":
             tau = t - self.t_rest
             lift = smooth_step(tau / self.t_takeoff)[:, None]
             e = smooth_step((tau - 0.5 * self.t_takeoff) / self.t_ramp)[:, None]
-            p = self.p_ground + lift * (self.center - self.p_ground) + e * _sines(tau, *self.pos)
-            a = np.array([self.yaw0, 0.0, 0.0]) + e * _sines(tau, *self.ang)
+            p = self.p_ground + lift * (self.center - self.p_ground) + e * sines(tau, *self.pos)
+            a = np.array([self.yaw0, 0.0, 0.0]) + e * sines(tau, *self.ang)
         else:  # handheld: in motion from the first sample
             tau = t + self.t_offset
-            p = self.center + _sines(tau, *self.pos)
-            a = np.array([self.yaw0, 0.0, 0.0]) + _sines(tau, *self.ang)
+            p = self.center + sines(tau, *self.pos)
+            a = np.array([self.yaw0, 0.0, 0.0]) + sines(tau, *self.ang)
         return euler_to_R_w_c(a[:, 0], a[:, 1], a[:, 2]), p
-
-    def camera_T(self, t: np.ndarray) -> np.ndarray:
-        """Camera poses ``T_w_c`` (N, 4, 4) at times ``t`` (N,) [s]."""
-        R, p = self.camera_pose(t)
-        T = np.zeros((R.shape[0], 4, 4))
-        T[:, :3, :3] = R
-        T[:, :3, 3] = p
-        T[:, 3, 3] = 1.0
-        return T
-
-    def body_pose(self, t: np.ndarray, T_b_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Body (IMU) orientation and position: R_w_b (N, 3, 3), p_w_b (N, 3) [m]."""
-        R_w_c, p_w_c = self.camera_pose(t)
-        R_b_c, t_b_c = T_b_c[:3, :3], T_b_c[:3, 3]
-        R_w_b = R_w_c @ R_b_c.T
-        return R_w_b, p_w_c - R_w_b @ t_b_c
-
-    def body_velocity(self, t: np.ndarray, T_b_c: np.ndarray, h: float = 1e-3) -> np.ndarray:
-        """Body velocity in the world (N, 3) [m/s] (4th-order central difference)."""
-        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        p = [self.body_pose(t + k * h, T_b_c)[1] for k in (-2, -1, 1, 2)]
-        return (p[0] - 8.0 * p[1] + 8.0 * p[2] - p[3]) / (12.0 * h)
-
-
-def _rates(traj: MotionTrajectory, dt: float = 0.02) -> tuple[float, float, np.ndarray]:
-    t = np.arange(0.0, traj.duration + dt, dt)
-    R, p = traj.camera_pose(t)
-    speed = np.linalg.norm(np.diff(p, axis=0), axis=-1) / dt
-    rel = np.swapaxes(R[:-1], -1, -2) @ R[1:]
-    ang = np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)) / dt
-    return float(speed.max()), float(ang.max()), p
 
 
 def _random_sines(rng, K, freq_lo, freq_hi, target):
@@ -134,7 +103,7 @@ def _random_sines(rng, K, freq_lo, freq_hi, target):
 
 def _fit_into(amp, freq, phase, tau, extent):
     """Shrink the per-axis amplitudes so that the sines' range fits ``extent`` (3,); returns (lo, hi) ranges."""
-    S = _sines(tau, amp, freq, phase)
+    S = sines(tau, amp, freq, phase)
     lo, hi = S.min(0), S.max(0)
     shrink = np.minimum(1.0, extent / np.maximum(hi - lo, 1e-9))
     amp *= shrink[:, None]
@@ -227,7 +196,7 @@ def make_motion_trajectory(scene: Scene, duration: float, seed: int, preset: str
                 break
             traj.base = (min(traj.base[0] + 0.05, 1.3), traj.base[1] * 1.06)
     for _ in range(30):  # enforce the speed and rate bounds by shrinking the amplitudes
-        v, w, _ = _rates(traj)
+        v, w, _ = camera_rates(traj)
         if v <= max_speed and w <= max_rate:
             break
         if v > max_speed:

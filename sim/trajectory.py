@@ -65,14 +65,40 @@ def euler_to_R_w_c(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.n
     return Rz @ Ry @ Rx @ R_LEVEL
 
 
-def _sines(tau: np.ndarray, amp: np.ndarray, freq: np.ndarray, phase: np.ndarray) -> np.ndarray:
+def sines(tau: np.ndarray, amp: np.ndarray, freq: np.ndarray, phase: np.ndarray) -> np.ndarray:
     """``sum_k amp_k (sin(freq_k tau + phase_k) - sin(phase_k))`` per row: (D, K) params, (N,) -> (N, D)."""
     arg = tau[:, None, None] * freq[None] + phase[None]  # (N, D, K)
     return np.sum(amp[None] * (np.sin(arg) - np.sin(phase)[None]), -1)
 
 
+class PoseCurve:
+    """Camera, body and velocity from a class's ``camera_pose(t) -> (R_w_c (N, 3, 3), p_w_c (N, 3))``."""
+
+    def camera_T(self, t: np.ndarray) -> np.ndarray:
+        """Camera poses ``T_w_c`` (N, 4, 4) at times ``t`` (N,) [s]."""
+        R, p = self.camera_pose(t)
+        T = np.zeros((R.shape[0], 4, 4))
+        T[:, :3, :3] = R
+        T[:, :3, 3] = p
+        T[:, 3, 3] = 1.0
+        return T
+
+    def body_pose(self, t: np.ndarray, T_b_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Body (IMU) orientation and position: R_w_b (N, 3, 3), p_w_b (N, 3) [m]."""
+        R_w_c, p_w_c = self.camera_pose(t)
+        R_b_c, t_b_c = T_b_c[:3, :3], T_b_c[:3, 3]
+        R_w_b = R_w_c @ R_b_c.T
+        return R_w_b, p_w_c - R_w_b @ t_b_c
+
+    def body_velocity(self, t: np.ndarray, T_b_c: np.ndarray, h: float = 1e-3) -> np.ndarray:
+        """Body velocity in the world (N, 3) [m/s] (4th-order central difference, error ~1e-10 m/s)."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        p = [self.body_pose(t + k * h, T_b_c)[1] for k in (-2, -1, 1, 2)]
+        return (p[0] - 8.0 * p[1] + 8.0 * p[2] - p[3]) / (12.0 * h)
+
+
 @dataclass
-class Trajectory:
+class Trajectory(PoseCurve):
     """A smooth camera trajectory (all parameters fixed; evaluate at any time).
 
     Attributes:
@@ -117,8 +143,8 @@ class Trajectory:
     def _explore(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         e = self.envelope(t)[:, None]
         tau = t - self.t_rest
-        p = self.p0 + e * _sines(tau, self.pos_amp, self.pos_freq, self.pos_phase)
-        ang = np.array([self.yaw0, 0.0, 0.0]) + e * _sines(tau, self.ang_amp, self.ang_freq, self.ang_phase)
+        p = self.p0 + e * sines(tau, self.pos_amp, self.pos_freq, self.pos_phase)
+        ang = np.array([self.yaw0, 0.0, 0.0]) + e * sines(tau, self.ang_amp, self.ang_freq, self.ang_phase)
         return p, ang
 
     def camera_pose(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,30 +161,8 @@ class Trajectory:
             ang = (1.0 - w) * ang + w * ang_h
         return euler_to_R_w_c(ang[:, 0], ang[:, 1], ang[:, 2]), p
 
-    def camera_T(self, t: np.ndarray) -> np.ndarray:
-        """Camera poses ``T_w_c`` (N, 4, 4) at times ``t`` (N,) [s]."""
-        R, p = self.camera_pose(t)
-        T = np.zeros((R.shape[0], 4, 4))
-        T[:, :3, :3] = R
-        T[:, :3, 3] = p
-        T[:, 3, 3] = 1.0
-        return T
 
-    def body_pose(self, t: np.ndarray, T_b_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Body (IMU) orientation and position: R_w_b (N, 3, 3), p_w_b (N, 3) [m]."""
-        R_w_c, p_w_c = self.camera_pose(t)
-        R_b_c, t_b_c = T_b_c[:3, :3], T_b_c[:3, 3]
-        R_w_b = R_w_c @ R_b_c.T
-        return R_w_b, p_w_c - R_w_b @ t_b_c
-
-    def body_velocity(self, t: np.ndarray, T_b_c: np.ndarray, h: float = 1e-3) -> np.ndarray:
-        """Body velocity in the world (N, 3) [m/s] (4th-order central difference, error ~1e-10 m/s)."""
-        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        p = [self.body_pose(t + k * h, T_b_c)[1] for k in (-2, -1, 1, 2)]
-        return (p[0] - 8.0 * p[1] + 8.0 * p[2] - p[3]) / (12.0 * h)
-
-
-def _rates(traj: Trajectory, dt: float = 0.02) -> tuple[float, float, np.ndarray]:
+def camera_rates(traj: PoseCurve, dt: float = 0.02) -> tuple[float, float, np.ndarray]:
     """(max speed [m/s], max angular rate [rad/s], positions (N, 3)) of the camera on a grid."""
     t = np.arange(0.0, traj.duration + dt, dt)
     R, p = traj.camera_pose(t)
@@ -251,13 +255,13 @@ def make_trajectory(
 
     tau = np.arange(0.0, duration - t_rest + 0.05, 0.02)
     # cap the angle offsets, then fit the position offsets into the free region
-    A = _sines(tau, ang_amp, ang_freq, ang_phase)
+    A = sines(tau, ang_amp, ang_freq, ang_phase)
     ang_amp *= np.minimum(1.0, ang_cap / np.maximum(np.abs(A).max(0), 1e-9))[:, None]
     room = (hi - lo) * 0.98
     for it in range(
         4
     ):  # fit the offsets into the free region, then speed them up (higher frequencies) to target
-        S = _sines(tau, pos_amp, pos_freq, pos_phase)
+        S = sines(tau, pos_amp, pos_freq, pos_phase)
         s_lo, s_hi = np.minimum(S.min(0), 0.0), np.maximum(S.max(0), 0.0)
         shrink = np.minimum(1.0, room / np.maximum(s_hi - s_lo, 1e-9))
         pos_amp *= shrink[:, None]
@@ -285,7 +289,7 @@ def make_trajectory(
         t_blend,
     )
     for _ in range(20):  # enforce the speed and rate bounds by shrinking the amplitudes
-        v, w, _ = _rates(traj)
+        v, w, _ = camera_rates(traj)
         if v <= max_speed and w <= max_rate:
             break
         if v > max_speed:

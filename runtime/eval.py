@@ -14,36 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.geometry import interpolate_poses, ns_to_s
+
 log = logging.getLogger(__name__)
-
-NS = 1e-9
-
-
-def interpolate_poses(ts_query: np.ndarray, ts: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 4, 4) at ``ts_query`` (ns) from a trajectory (``ts`` ns, ``T`` (K, 4, 4)), and a mask of
-    queries inside ``[ts[0], ts[-1]]``. Position linear, rotation slerp."""
-    from scipy.spatial.transform import Rotation, Slerp
-
-    ts_query = np.asarray(ts_query, dtype=np.int64)
-    ts = np.asarray(ts, dtype=np.int64)
-    inside = (ts_query >= ts[0]) & (ts_query <= ts[-1])
-    q = ts_query[inside]
-    out = np.tile(np.eye(4), (q.size, 1, 1))
-    if q.size:
-        t_rel = (ts - ts[0]) * NS
-        tq = (q - ts[0]) * NS
-        slerp = Slerp(t_rel, Rotation.from_matrix(T[:, :3, :3]))
-        out[:, :3, :3] = slerp(tq).as_matrix()
-        for d in range(3):
-            out[:, d, 3] = np.interp(tq, t_rel, T[:, d, 3])
-    return out, inside
-
 
 def _traj(ts_ns: np.ndarray, T: np.ndarray):
     from evo.core.trajectory import PoseTrajectory3D
 
     return PoseTrajectory3D(
-        poses_se3=list(np.asarray(T, dtype=np.float64)), timestamps=np.asarray(ts_ns) * NS
+        poses_se3=list(np.asarray(T, dtype=np.float64)), timestamps=ns_to_s(np.asarray(ts_ns))
     )
 
 
@@ -99,7 +78,7 @@ def trajectory_metrics(
     ape.process_data((ref, est_sim3))
     out.update(ate_sim3_rmse_m=ape.get_statistic(metrics.StatisticsType.rmse), sim3_scale=float(s))
 
-    rate = 1.0 / np.median(np.diff(ts) * NS) if ts.size > 1 else 1.0
+    rate = 1.0 / np.median(ns_to_s(np.diff(ts))) if ts.size > 1 else 1.0
     delta = max(1, int(round(rpe_delta_s * rate)))
     out["rpe_delta_frames"] = delta
     if ts.size > delta + 1:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.geometry import GRAVITY
+from runtime.geometry import GRAVITY, ns_to_s
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ class StaticInitializer:
         c = self.cfg
         if self.t_first is None:
             self.t_first = int(imu_ts[0]) if imu_ts.size else ts_now
-        span = (imu_ts[-1] - imu_ts[0]) * 1e-9 if imu_ts.size > 1 else 0.0
+        span = ns_to_s(imu_ts[-1] - imu_ts[0]) if imu_ts.size > 1 else 0.0
         if imu_ts.size < 10 or span < 0.9 * c.still_duration_s:
             return None
         g_std = float(np.max(np.std(gyro, axis=0)))
@@ -121,14 +121,14 @@ class StaticInitializer:
             still = still and flow_px < c.flow_max_px
         self.last_stats = {"gyro_std": g_std, "accel_std": a_std, "gravity_err": g_err, "flow_px": flow_px}
         if not still:
-            if not self.reported_moving and (ts_now - self.t_first) * 1e-9 >= c.report_after_s:
+            if not self.reported_moving and ns_to_s(ts_now - self.t_first) >= c.report_after_s:
                 self.reported_moving = True
                 log.warning(
                     "t=%.3f s: the sequence is not still (gyro std %.4f rad/s, accel std %.3f m/s^2, "
                     "|g| error "
                     "%.3f m/s^2, flow %s px); static initialisation needs %.1f s at rest and keeps waiting "
                     "(dynamic initialisation is not implemented)",
-                    ts_now * 1e-9,
+                    ns_to_s(ts_now),
                     g_std,
                     a_std,
                     g_err,

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.geometry import Camera, inv_T
+from runtime.geometry import Camera, inv_T, project_pinhole
 
 __all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3"]
 
@@ -89,8 +89,7 @@ def project_points(
     pc = p @ T_c_w[:3, :3].T + T_c_w[:3, 3]
     z = pc[:, 2]
     front = np.isfinite(pc).all(1) & (z > near)
-    zs = np.where(front, z, 1.0)
-    uv = np.stack([camera.fx * pc[:, 0] / zs + camera.cx, camera.fy * pc[:, 1] / zs + camera.cy], -1)
+    uv, _ = project_pinhole(camera.intrinsics, np.where(front[:, None], pc, [0.0, 0.0, 1.0]))
     inside = front & (uv[:, 0] > -0.5) & (uv[:, 1] > -0.5)
     inside &= (uv[:, 0] < camera.width - 0.5) & (uv[:, 1] < camera.height - 0.5)
     return uv, z, inside

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from runtime.geometry import inv_T, so3_exp, so3_log
+from runtime.geometry import inv_T, project_pinhole, so3_exp, so3_log
 
 
 # --------------------------------------------------------------------------- noise models
@@ -116,8 +116,7 @@ def project_body_points(
     p_b = X_w @ T_b_w[:3, :3].T + T_b_w[:3, 3]
     T_c_b = inv_T(T_b_c)
     p_c = p_b @ T_c_b[:3, :3].T + T_c_b[:3, 3]
-    z = np.where(np.abs(p_c[:, 2]) > 1e-9, p_c[:, 2], 1e-9)
-    uv = np.stack([K[0, 0] * p_c[:, 0] / z + K[0, 2], K[1, 1] * p_c[:, 1] / z + K[1, 2]], -1)
+    uv, _ = project_pinhole((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), p_c, min_abs_depth=1e-9)
     return uv, p_c, p_b
 
 

@@ -16,11 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.geometry import GRAVITY, GRAVITY_W, so3_exp
+from runtime.geometry import GRAVITY, GRAVITY_W, ns_to_s, so3_exp
 
 log = logging.getLogger(__name__)
 
-NS = 1e-9  # seconds per nanosecond
 
 
 @dataclass
@@ -112,7 +111,7 @@ class ImuStream:
             log.warning(
                 "IMU: dropped %d non-finite samples (first at t=%.3f s)",
                 self.dropped_ts.size,
-                self.dropped_ts[0] * NS,
+                ns_to_s(self.dropped_ts[0]),
             )
         ts, gyro, accel = ts[good], gyro[good], accel[good]
         if ts.size < 2:
@@ -135,7 +134,7 @@ class ImuStream:
         gap_idx = np.nonzero(dts > self.gap_ns)[0]
         self.gaps = [(int(ts[i]), int(ts[i + 1])) for i in gap_idx]  # (start, end) ns
         for a, b in self.gaps[:20]:
-            log.warning("IMU: gap of %.3f s at t=%.3f s (holding the last sample)", (b - a) * NS, a * NS)
+            log.warning("IMU: gap of %.3f s at t=%.3f s (holding the last sample)", ns_to_s(b - a), ns_to_s(a))
         if len(self.gaps) > 20:
             log.warning("IMU: %d more gaps not listed", len(self.gaps) - 20)
 
@@ -158,7 +157,7 @@ class ImuStream:
         i0 = max(int(np.searchsorted(self.ts, t0, "right")) - 1, 0)
         i1 = int(np.searchsorted(self.ts, t1, "right"))
         seg = self.ts[i0:i1]
-        return float(np.max(np.diff(seg)) * NS) if seg.size > 1 else 0.0
+        return float(ns_to_s(np.max(np.diff(seg)))) if seg.size > 1 else 0.0
 
     def segment(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Zero-order-hold pieces covering ``[t0, t1)``.
@@ -179,7 +178,7 @@ class ImuStream:
         i1 = int(np.searchsorted(self.ts, t1, "left"))
         knots = np.concatenate([[t0], self.ts[i0:i1], [t1]]).astype(np.int64)
         src = np.concatenate([[max(i0 - 1, 0)], np.arange(i0, i1)])
-        dt = np.diff(knots) * NS
+        dt = ns_to_s(np.diff(knots))
         keep = dt > 0
         return self.gyro[src][keep], self.accel[src][keep], dt[keep]
 

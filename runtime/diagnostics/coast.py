@@ -21,9 +21,9 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from runtime.backend.factors import custom_factor
-from runtime.backend.imu import NS, ImuStream, integrate, make_bias, preintegration_params
+from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params
 from runtime.eval import interpolate_poses
-from runtime.geometry import from_pose3, rotation_angle, skew, to_pose3
+from runtime.geometry import from_pose3, ns_to_s, rotation_angle, skew, to_pose3
 from runtime.io.euroc import read_euroc
 from runtime.io.tum import read_tum
 from runtime.render import align_se3
@@ -62,7 +62,7 @@ def oracle_coast(seq, t0: int, t1: int, mode: str, dt_kf: float = 0.4, wall_x: f
     """Position errors (K, 3) [m] of keyframes every ``dt_kf`` over ``[t0, t1]`` smoothed over the IMU from exact
     end states (``mode`` one of :data:`ORACLES`; the wall is the plane ``x = wall_x`` of the world)."""
     gt = seq.gt
-    n = max(2, int(round((t1 - t0) * NS / dt_kf)) + 1)
+    n = max(2, int(round(ns_to_s(t1 - t0) / dt_kf)) + 1)
     grid = np.linspace(t0, t1, n).astype(np.int64)
     idx = np.clip(np.searchsorted(gt.ts, grid), 0, len(gt) - 1)  # ground-truth samples (200 Hz) at the grid
     ts, T, v = gt.ts[idx], gt.T_w_b[idx], gt.v_w[idx]
@@ -167,7 +167,7 @@ def coast_row(root: Path, seed: int, runs: dict[str, Path], dt_kf: float = 0.4, 
     seq = read_euroc(root)
     wall_x = float(json.loads((root / "sim_info.json").read_text())["room_size_m"][0])
     t0, t1, source = coast_interval(root, runs.get("sparse"), widen)
-    row = {"seed": seed, "t0_s": (t0 - seq.gt.ts[0]) * NS, "t1_s": (t1 - seq.gt.ts[0]) * NS, "source": source}
+    row = {"seed": seed, "t0_s": ns_to_s(t0 - seq.gt.ts[0]), "t1_s": ns_to_s(t1 - seq.gt.ts[0]), "source": source}
     for mode in ORACLES:
         e = oracle_coast(seq, t0, t1, mode, dt_kf, wall_x)
         row[mode] = float(np.sqrt(np.mean(np.sum(e**2, 1))))

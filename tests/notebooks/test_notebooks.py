@@ -122,6 +122,7 @@ def test_01_depth_modalities_tiny(tmp_path):
         "| RGB / Ours (DiT)",
         "| RGB / median GT (reference)",
         "| G-S / Ours (DiT)",
+        "| G-S / interpolation of the sparse input (reference)",
         "| G-S / median GT (reference)",
     ]
     for png in ("table1_bars.png", "fig7_dit_rgb.png", "fig8_dit_grays.png"):

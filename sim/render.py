@@ -161,6 +161,21 @@ class Renderer:
             np.copyto(face[win], fb, where=hit)
         return t, face
 
+    def _surface(self, T_w_c: np.ndarray):
+        """What the rays of one frame hit: depth (H, W), face per pixel (P,), hit points (3 arrays (P,)) and albedo
+        (P, C)."""
+        t, face = self.trace(T_w_c)
+        o = np.asarray(T_w_c, dtype=np.float64)[:3, 3]
+        R = np.asarray(T_w_c, dtype=np.float64)[:3, :3]
+        f32 = np.float32
+        tf, ff = t.reshape(-1), face.reshape(-1)
+        rx, ry = self.rx.reshape(-1), self.ry.reshape(-1)
+        p = [f32(o[i]) + tf * (f32(R[i, 0]) * rx + f32(R[i, 1]) * ry + f32(R[i, 2])) for i in range(3)]
+        axis = (ff % 6) // 2
+        u = np.where(axis == 0, p[1], p[0]) - self.face_u0[ff]
+        v = np.where(axis == 2, p[1], p[2]) - self.face_v0[ff]
+        return t, ff, p, self.scene.atlas.lookup(ff, u, v)
+
     def render(
         self,
         T_w_c: np.ndarray,
@@ -180,18 +195,9 @@ class Renderer:
             ``(image, depth)``: image (H, W) uint8 grey or (H, W, 3) uint8 RGB (following the scene's atlas);
             depth (H, W) float32 z-depth in the camera frame [m], all pixels valid (> 0).
         """
-        t, face = self.trace(T_w_c)
+        t, ff, p, albedo = self._surface(T_w_c)
         H, W = self.shape
-        o = np.asarray(T_w_c, dtype=np.float64)[:3, 3]
-        R = np.asarray(T_w_c, dtype=np.float64)[:3, :3]
         f32 = np.float32
-        tf, ff = t.reshape(-1), face.reshape(-1)
-        rx, ry = self.rx.reshape(-1), self.ry.reshape(-1)
-        p = [f32(o[i]) + tf * (f32(R[i, 0]) * rx + f32(R[i, 1]) * ry + f32(R[i, 2])) for i in range(3)]
-        axis = (ff % 6) // 2
-        u = np.where(axis == 0, p[1], p[0]) - self.face_u0[ff]
-        v = np.where(axis == 2, p[1], p[2]) - self.face_v0[ff]
-        albedo = self.scene.atlas.lookup(ff, u, v)  # (P, C)
         val = albedo * (self.shade[ff] * f32(255.0 * exposure))[:, None]
         if noise_sigma > 0:
             if rng is None:
@@ -211,18 +217,9 @@ class Renderer:
         Returns:
             ``(radiance, depth)``: (H, W) or (H, W, 3) float32 (following the atlas), (H, W) float32 z-depth [m].
         """
-        t, face = self.trace(T_w_c)
+        t, ff, p, albedo = self._surface(T_w_c)
         H, W = self.shape
-        o = np.asarray(T_w_c, dtype=np.float64)[:3, 3]
-        R = np.asarray(T_w_c, dtype=np.float64)[:3, :3]
         f32 = np.float32
-        tf, ff = t.reshape(-1), face.reshape(-1)
-        rx, ry = self.rx.reshape(-1), self.ry.reshape(-1)
-        p = [f32(o[i]) + tf * (f32(R[i, 0]) * rx + f32(R[i, 1]) * ry + f32(R[i, 2])) for i in range(3)]
-        axis = (ff % 6) // 2
-        u = np.where(axis == 0, p[1], p[0]) - self.face_u0[ff]
-        v = np.where(axis == 2, p[1], p[2]) - self.face_v0[ff]
-        albedo = self.scene.atlas.lookup(ff, u, v)  # (P, C)
         sc = self.scene
         if sc.point_light is None:
             gain = self.shade[ff]

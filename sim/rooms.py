@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.natural import make_natural_texture
-from sim.scenes import FACE_UV_AXES, ROOM_PRESETS, Scene
+from sim.scenes import FACE_UV_AXES, ROOM_PRESETS, Scene, along_wall
 from sim.textures import TextureAtlas
 
 __all__ = ["ROOM_PRESETS", "make_room", "face_normals"]
@@ -40,18 +40,6 @@ def _box(name, lo, hi, style):
     return (name, [float(x) for x in lo], [float(x) for x in hi], style)
 
 
-def _wall_box(wall: int, s0: float, s1: float, depth: float, z0: float, z1: float, size, gap: float = 0.0):
-    """Box against wall ``wall`` (0: y=0, 1: x=Lx, 2: y=Ly, 3: x=0) spanning [s0, s1] along it."""
-    Lx, Ly, _ = size
-    if wall == 0:
-        return [s0, gap, z0], [s1, gap + depth, z1]
-    if wall == 1:
-        return [Lx - gap - depth, s0, z0], [Lx - gap, s1, z1]
-    if wall == 2:
-        return [s0, Ly - gap - depth, z0], [s1, Ly - gap, z1]
-    return [gap, s0, z0], [gap + depth, s1, z1]
-
-
 def _along_walls(rng, size, band, walls, kinds, probs, wmin, wmax, hmax):
     """Objects standing in the band along each wall: (name, lo, hi, style)."""
     Lx, Ly, Lz = size
@@ -69,9 +57,10 @@ def _along_walls(rng, size, band, walls, kinds, probs, wmin, wmax, hmax):
                 height = float(rng.uniform(1.5, hmax))
                 t = 0.05
                 for ds in (0.0, width - t):
-                    out.append(_box("rack_post", *_wall_box(wall, s + ds, s + ds + t, depth, 0, height, size), "metal"))
+                    post = along_wall(wall, s + ds, s + ds + t, depth, 0, height, size)
+                    out.append(_box("rack_post", *post, "metal"))
                 for z in np.linspace(0.1, height - t, int(rng.integers(3, 6))):
-                    lo, hi = _wall_box(wall, s + t, s + width - t, depth, float(z), float(z) + t, size)
+                    lo, hi = along_wall(wall, s + t, s + width - t, depth, float(z), float(z) + t, size)
                     out.append(_box("rack_board", lo, hi, "wood"))
                     if z + 0.3 < height:
                         x = s + t
@@ -79,7 +68,7 @@ def _along_walls(rng, size, band, walls, kinds, probs, wmin, wmax, hmax):
                             bw = float(rng.uniform(0.2, 0.6))
                             if rng.uniform() < 0.7 and x + bw < s + width - t:
                                 bh = float(rng.uniform(0.15, 0.5))
-                                lo, hi = _wall_box(
+                                lo, hi = along_wall(
                                     wall,
                                     x,
                                     x + bw,
@@ -92,10 +81,10 @@ def _along_walls(rng, size, band, walls, kinds, probs, wmin, wmax, hmax):
                                 out.append(_box("rack_item", lo, hi, "clutter"))
                             x += bw + float(rng.uniform(0.02, 0.2))
             elif kind == "machine":  # a big block with panels
-                lo, hi = _wall_box(wall, s, s + width, depth, 0.0, float(rng.uniform(0.8, hmax)), size)
+                lo, hi = along_wall(wall, s, s + width, depth, 0.0, float(rng.uniform(0.8, hmax)), size)
                 out.append(_box("machine", lo, hi, str(rng.choice(["metal", "clutter"]))))
             elif kind == "cabinet":
-                lo, hi = _wall_box(wall, s, s + width, depth, 0.0, float(rng.uniform(0.7, 2.0)), size)
+                lo, hi = along_wall(wall, s, s + width, depth, 0.0, float(rng.uniform(0.7, 2.0)), size)
                 out.append(_box("cabinet", lo, hi, str(rng.choice(["wood", "clutter", "metal"]))))
             elif kind == "crates":
                 z = 0.0
@@ -104,25 +93,25 @@ def _along_walls(rng, size, band, walls, kinds, probs, wmin, wmax, hmax):
                     bd = float(rng.uniform(0.3, depth))
                     bh = float(rng.uniform(0.3, 0.7))
                     s2 = s + float(rng.uniform(0, width - bw))
-                    lo, hi = _wall_box(wall, s2, s2 + bw, bd, z, z + bh, size, gap=float(rng.uniform(0, depth - bd)))
+                    lo, hi = along_wall(wall, s2, s2 + bw, bd, z, z + bh, size, gap=float(rng.uniform(0, depth - bd)))
                     out.append(_box("crate", lo, hi, str(rng.choice(["wood", "clutter"]))))
                     z += bh
             elif kind == "sofa":
-                lo, hi = _wall_box(wall, s, s + width, depth, 0.0, 0.45, size)
+                lo, hi = along_wall(wall, s, s + width, depth, 0.0, 0.45, size)
                 out.append(_box("sofa_seat", lo, hi, "fabric"))
-                lo, hi = _wall_box(wall, s, s + width, 0.2, 0.45, 0.85, size)
+                lo, hi = along_wall(wall, s, s + width, 0.2, 0.45, 0.85, size)
                 out.append(_box("sofa_back", lo, hi, "fabric"))
             elif kind == "desk":
                 top = float(rng.uniform(0.7, 0.78))
-                lo, hi = _wall_box(wall, s, s + width, depth, top - 0.03, top, size)
+                lo, hi = along_wall(wall, s, s + width, depth, top - 0.03, top, size)
                 out.append(_box("desk_top", lo, hi, "wood"))
                 for ds in (0.02, width - 0.07):
-                    lo, hi = _wall_box(wall, s + ds, s + ds + 0.05, depth - 0.04, 0.0, top - 0.03, size, gap=0.02)
+                    lo, hi = along_wall(wall, s + ds, s + ds + 0.05, depth - 0.04, 0.0, top - 0.03, size, gap=0.02)
                     out.append(_box("desk_side", lo, hi, "wood"))
                 for _ in range(int(rng.integers(1, 4))):  # things on the desk
                     bw = float(rng.uniform(0.1, 0.4))
                     s2 = s + float(rng.uniform(0.05, max(0.06, width - bw - 0.05)))
-                    lo, hi = _wall_box(
+                    lo, hi = along_wall(
                         wall,
                         s2,
                         s2 + bw,
@@ -147,7 +136,7 @@ def _wall_items(rng, size, walls, n_range, z_lo, windows: int):
             pw = float(rng.uniform(0.4, 1.4))
             s0 = float(rng.uniform(0.2, max(0.3, length - pw - 0.2)))
             z0 = float(rng.uniform(z_lo, max(z_lo + 0.1, Lz - 1.2)))
-            lo, hi = _wall_box(wall, s0, s0 + pw, 0.02, z0, z0 + float(rng.uniform(0.3, 0.9)), size)
+            lo, hi = along_wall(wall, s0, s0 + pw, 0.02, z0, z0 + float(rng.uniform(0.3, 0.9)), size)
             out.append(_box("picture", lo, hi, "clutter"))
     for _ in range(windows):
         wall = int(rng.choice(walls))
@@ -155,7 +144,7 @@ def _wall_items(rng, size, walls, n_range, z_lo, windows: int):
         pw = float(rng.uniform(0.8, 2.0))
         s0 = float(rng.uniform(0.3, max(0.4, length - pw - 0.3)))
         z0 = float(rng.uniform(1.0, max(1.1, Lz - 2.0)))
-        lo, hi = _wall_box(wall, s0, s0 + pw, 0.01, z0, z0 + float(rng.uniform(0.8, 1.4)), size)
+        lo, hi = along_wall(wall, s0, s0 + pw, 0.01, z0, z0 + float(rng.uniform(0.8, 1.4)), size)
         out.append(_box("window", lo, hi, "window"))
     return out
 
@@ -199,12 +188,12 @@ def make_room(seed: int, preset: str, rgb: bool = False, texel: float | None = N
             if rng.uniform() < 0.6:
                 z = float(rng.uniform(1.8, size[2] - 0.5))
                 s0 = float(rng.uniform(0.0, length * 0.5))
-                lo, hi = _wall_box(
+                lo, hi = along_wall(
                     wall, s0, min(length, s0 + float(rng.uniform(2.0, length))), th, z, z + th, size, gap=gap
                 )
             else:
                 s0 = float(rng.uniform(0.2, length - 0.5))
-                lo, hi = _wall_box(wall, s0, s0 + th, th, 0.0, float(rng.uniform(2.0, size[2])), size, gap=gap)
+                lo, hi = along_wall(wall, s0, s0 + th, th, 0.0, float(rng.uniform(2.0, size[2])), size, gap=gap)
             furniture.append(_box("pipe", lo, hi, "metal"))
         for _ in range(int(rng.integers(4, 9))):  # ceiling light strips
             x = float(rng.uniform(1.0, size[0] - 2.0))

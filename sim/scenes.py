@@ -94,7 +94,7 @@ def box_distance(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- furniture
-def _along_wall(wall: int, s0: float, s1: float, depth: float, z0: float, z1: float, size, gap: float = 0.0):
+def along_wall(wall: int, s0: float, s1: float, depth: float, z0: float, z1: float, size, gap: float = 0.0):
     """Box against wall ``wall`` (0: y=0, 1: x=Lx, 2: y=Ly, 3: x=0) spanning [s0, s1] along it."""
     Lx, Ly, _ = size
     if wall == 0:
@@ -122,21 +122,21 @@ def _furniture(rng: np.random.Generator, size: np.ndarray, band: float, walls: l
                 break
             depth = float(rng.uniform(0.35, band))
             if kind == "cabinet":
-                lo, hi = _along_wall(wall, s, s + width, depth, 0.0, float(rng.uniform(0.6, 2.1)), size)
+                lo, hi = along_wall(wall, s, s + width, depth, 0.0, float(rng.uniform(0.6, 2.1)), size)
                 boxes.append(("cabinet", lo, hi, "object"))
             elif kind == "table":
                 top = float(rng.uniform(0.68, 0.8))
-                lo, hi = _along_wall(wall, s, s + width, depth, top - 0.04, top, size)
+                lo, hi = along_wall(wall, s, s + width, depth, top - 0.04, top, size)
                 boxes.append(("table_top", lo, hi, "object"))
                 leg = 0.05
                 for ds in (0.02, width - 0.02 - leg):
                     for dd in (0.02, depth - 0.02 - leg):
-                        lo, hi = _along_wall(wall, s + ds, s + ds + leg, leg, 0.0, top - 0.04, size, gap=dd)
+                        lo, hi = along_wall(wall, s + ds, s + ds + leg, leg, 0.0, top - 0.04, size, gap=dd)
                         boxes.append(("table_leg", lo, hi, "object"))
                 if rng.uniform() < 0.7:  # something on the table
                     w2 = float(rng.uniform(0.2, min(0.5, width - 0.1)))
                     s2 = s + float(rng.uniform(0.05, width - w2 - 0.05))
-                    lo, hi = _along_wall(
+                    lo, hi = along_wall(
                         wall,
                         s2,
                         s2 + w2,
@@ -151,19 +151,19 @@ def _furniture(rng: np.random.Generator, size: np.ndarray, band: float, walls: l
                 height = float(rng.uniform(1.0, 2.0))
                 t = 0.025
                 for ds in (0.0, width - t):
-                    lo, hi = _along_wall(wall, s + ds, s + ds + t, depth, 0.0, height, size)
+                    lo, hi = along_wall(wall, s + ds, s + ds + t, depth, 0.0, height, size)
                     boxes.append(("shelf_side", lo, hi, "object"))
-                lo, hi = _along_wall(wall, s, s + width, 0.01, 0.0, height, size)
+                lo, hi = along_wall(wall, s, s + width, 0.01, 0.0, height, size)
                 boxes.append(("shelf_back", lo, hi, "object"))
                 n_boards = int(rng.integers(3, 6))
                 for z in np.linspace(0.05, height - t, n_boards):
-                    lo, hi = _along_wall(wall, s + t, s + width - t, depth, float(z), float(z) + t, size)
+                    lo, hi = along_wall(wall, s + t, s + width - t, depth, float(z), float(z) + t, size)
                     boxes.append(("shelf_board", lo, hi, "object"))
                     if rng.uniform() < 0.6 and z + 0.1 < height - t:  # books / boxes on the board
                         w2 = float(rng.uniform(0.1, 0.4)) * (width - 2 * t)
                         s2 = s + t + float(rng.uniform(0, width - 2 * t - w2))
                         zt = min(float(z) + t + float(rng.uniform(0.08, 0.3)), height - t)
-                        lo, hi = _along_wall(
+                        lo, hi = along_wall(
                             wall,
                             s2,
                             s2 + w2,
@@ -181,7 +181,7 @@ def _furniture(rng: np.random.Generator, size: np.ndarray, band: float, walls: l
                     bd = float(rng.uniform(0.25, depth))
                     bh = float(rng.uniform(0.2, 0.5))
                     s2 = s + float(rng.uniform(0, width - bw))
-                    lo, hi = _along_wall(wall, s2, s2 + bw, bd, z, z + bh, size, gap=float(rng.uniform(0, depth - bd)))
+                    lo, hi = along_wall(wall, s2, s2 + bw, bd, z, z + bh, size, gap=float(rng.uniform(0, depth - bd)))
                     boxes.append(("box", lo, hi, "object"))
                     z += bh
             s += width + float(rng.uniform(0.05, 0.6))
@@ -190,7 +190,7 @@ def _furniture(rng: np.random.Generator, size: np.ndarray, band: float, walls: l
             pw = float(rng.uniform(0.3, 1.0))
             s0 = float(rng.uniform(0.1, max(0.2, length - pw - 0.1)))
             z0 = float(rng.uniform(1.2, max(1.3, Lz - 1.1)))
-            lo, hi = _along_wall(wall, s0, s0 + pw, 0.02, z0, z0 + float(rng.uniform(0.3, 0.8)), size)
+            lo, hi = along_wall(wall, s0, s0 + pw, 0.02, z0, z0 + float(rng.uniform(0.3, 0.8)), size)
             boxes.append(("picture", lo, hi, "object"))
     # low objects in the middle: a rug and maybe a low table (top below free_z[0] - clearance)
     rug_w, rug_d = float(rng.uniform(1.0, 2.0)), float(rng.uniform(1.0, 2.5))

@@ -99,7 +99,7 @@ if unknown:
 # ## Settings of the three modes
 #
 # The sparse system runs with `SlamConfig()`; the dense modes add the package's default `DenseConfig`
-# (`conf/slam.yaml`'s `dense_settings`) with the residuals of the mode switched on, plus `DENSE_SET`.
+# (`conf/slam/dense_settings/default.yaml`) with the residuals of the mode switched on, plus `DENSE_SET`.
 # Per-keyframe depth maps are not saved (`save_maps=False`, as in the benchmark).
 
 # %%

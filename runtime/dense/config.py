@@ -1,5 +1,6 @@
 """Settings of the dense system, each defined once: the depth factors, the local dense map, and the mapper that
-holds them (Hydra ``dense_settings`` in ``conf/slam.yaml``; ``dense_settings.factors.*``, ``dense_settings.map.*``).
+holds them (Hydra ``dense_settings``, ``conf/slam/dense_settings/default.yaml``; nested keys
+``dense_settings.factors.*``, ``dense_settings.map.*``).
 """
 
 from __future__ import annotations

@@ -141,3 +141,29 @@ def write_bag(asl_root: str | Path, out: str | Path, fmt: str = "bag", calib_dir
             dst.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(seq.mav0 / sensor / "sensor.yaml", dst / "sensor.yaml")
     return out
+
+
+def write_bag_sequence(out: str | Path, fmt: str, **kw) -> Path:
+    """``dit-sim euroc format=bag|ros2|mcap``: render the sequence (keywords of
+    :func:`sim.euroc.write_euroc_sequence`) and write it into ``out`` as the bag :func:`bag_name` names, with
+    ``calib/`` (its sensor.yaml files) and ``sim_info.json``; the ASL folder rendered on the way is removed.
+
+    Returns:
+        The bag (``out/sequence.bag`` or the ROS2 folder ``out/sequence``).
+    """
+    import json
+
+    from sim.euroc import prepare_output, write_euroc_sequence
+
+    out = Path(out)
+    name = bag_name(fmt)
+    prepare_output(out, (name, "calib", "_asl"))
+    asl = write_euroc_sequence(out / "_asl", **kw)
+    try:
+        bag = write_bag(asl, out / name, fmt, calib_dir=out / "calib")
+        info = json.loads((asl / "sim_info.json").read_text())
+        info.update(format=fmt, bag=name, calib="calib", gt_topic=GT_TOPIC)
+        (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
+    finally:
+        shutil.rmtree(asl)
+    return bag

@@ -69,7 +69,8 @@ def test_image_decoders_known_answers():
     msg = SimpleNamespace(height=5, width=12, step=36, encoding="rgb8", is_bigendian=0, data=rgb.ravel())
     assert np.array_equal(image_from_msg(msg, "sensor_msgs/msg/Image"), img)
     png = cv2.imencode(".png", img)[1].ravel()
-    assert np.array_equal(image_from_msg(SimpleNamespace(format="png", data=png), "sensor_msgs/msg/CompressedImage"), img)
+    comp = SimpleNamespace(format="png", data=png)
+    assert np.array_equal(image_from_msg(comp, "sensor_msgs/msg/CompressedImage"), img)
     msg = SimpleNamespace(height=5, width=12, step=12, encoding="bayer_rggb8", is_bigendian=0, data=img.ravel())
     with pytest.raises(ValueError, match="bayer_rggb8"):
         image_from_msg(msg, "sensor_msgs/msg/Image")

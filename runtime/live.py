@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +52,7 @@ class LiveState:
         is_keyframe: the image became a keyframe.
         n_keyframes: keyframes so far.
         n_landmarks: landmarks in the map.
+        record: the system's :class:`runtime.trajectory.FrameRecord` of the image (None before initialisation).
     """
 
     ts: int
@@ -63,6 +64,7 @@ class LiveState:
     is_keyframe: bool
     n_keyframes: int
     n_landmarks: int
+    record: object = field(default=None, repr=False)
 
 
 class GrowingImuStream(ImuStream):
@@ -227,6 +229,7 @@ class LiveSlam:
             is_keyframe=bool(rec is not None and rec.is_kf),
             n_keyframes=len(s.map.history),
             n_landmarks=int(s.map.n_landmarks),
+            record=rec,
         )
         if self.on_frame is not None:
             self.on_frame(state)

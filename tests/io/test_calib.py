@@ -89,3 +89,17 @@ def test_euroc_sensor_yaml_folder_with_equidistant_model(euroc, tmp_path):
     text = y.read_text()
     y.write_text(text.replace("radial-tangential", "equidistant"))
     assert read_calibration(euroc.root).camera.model == "equidistant"
+
+
+def test_open_sequence_takes_kalibr_calibration_for_an_asl_folder(euroc, tmp_path):
+    from runtime.io.sequence import PinholeView, open_sequence
+
+    kal = tmp_path / "kalibr"
+    kal.mkdir()
+    plain = open_sequence(euroc.root)
+    (kal / "camchain.yaml").write_text(CAMCHAIN.replace("[512, 512]", f"[{plain.camera.width}, {plain.camera.height}]"))
+    (kal / "imu.yaml").write_text(IMU_OUT)
+    seq = open_sequence(euroc.root, kal)
+    assert isinstance(seq, PinholeView) and seq.fisheye.model == "equidistant" and seq.imu.rate_hz == 200.0
+    assert np.array_equal(seq.frame_ts, plain.frame_ts + 1_000_000)  # Kalibr's timeshift_cam_imu
+    assert seq.image(0).shape == plain.image(0).shape

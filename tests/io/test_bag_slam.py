@@ -5,6 +5,7 @@ import pytest
 pytest.importorskip("rosbags")
 sim_euroc = pytest.importorskip("sim.euroc")
 
+from apps.slam import main as slam_main  # noqa: E402
 from runtime.io.sequence import open_sequence  # noqa: E402
 from runtime.run import run_sequence  # noqa: E402
 from sim.bag import write_bag  # noqa: E402
@@ -27,3 +28,7 @@ def test_asl_ros1_and_ros2_give_byte_identical_trajectories(tmp_path):
         traj[name] = (tmp_path / f"out_{name}" / "trajectory.txt").read_bytes()
     assert traj["ros1"] == traj["asl"]
     assert traj["ros2"] == traj["asl"]
+    # the command line: dit-slam sequence=FILE.bag calib=DIR
+    bag, calib = inputs["ros1"]
+    slam_main([f"sequence={bag}", f"calib={calib}", f"out={tmp_path / 'cli'}", "progress=false"])
+    assert (tmp_path / "cli" / "trajectory.txt").read_bytes() == traj["asl"]

@@ -18,6 +18,7 @@ Bad input raises :class:`BagFormatError` (a ``ValueError``) naming the bag, the 
 from __future__ import annotations
 
 import logging
+import struct
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -93,6 +94,17 @@ def _open_reader(path: Path):
 
 def _stamp_ns(header) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _raw_stamp_ns(raw, ros2: bool) -> int:
+    """``header.stamp`` of a serialized message that starts with a ``std_msgs/Header`` (Image, CompressedImage),
+    without decoding the rest. ROS1: ``uint32 seq, uint32 sec, uint32 nsec``; ROS2 CDR: a 4-byte encapsulation
+    header (byte 1: 1 little-endian, 0 big-endian), then ``int32 sec, uint32 nanosec``."""
+    if ros2:
+        sec, nsec = struct.unpack_from("<iI" if raw[1] == 1 else ">iI", raw, 4)
+    else:
+        sec, nsec = struct.unpack_from("<II", raw, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def image_from_msg(msg, msgtype: str) -> np.ndarray:
@@ -317,14 +329,17 @@ def _scan(reader, path: Path, img_c, imu_c, gt_c):
     img_ids, imu_ids = {id(c) for c in img_c}, {id(c) for c in imu_c}
     f_ts, b_ts, i_ts, i_v, g_ts, g_p, g_q = [], [], [], [], [], [], []
     for conn, t_bag, raw in reader.messages(connections=[*img_c, *imu_c, *gt_c]):
+        if id(conn) in img_ids:  # the stamp only: images are decoded when read
+            if len(raw) < 12:
+                raise BagFormatError(f"{path}: topic {conn.topic!r}: a message of {len(raw)} bytes has no header")
+            f_ts.append(_raw_stamp_ns(raw, reader.is2))
+            b_ts.append(t_bag)
+            continue
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except Exception as e:  # noqa: BLE001
             raise BagFormatError(f"{path}: topic {conn.topic!r}: cannot decode a {conn.msgtype} ({e})") from e
-        if id(conn) in img_ids:
-            f_ts.append(_stamp_ns(msg.header))
-            b_ts.append(t_bag)
-        elif id(conn) in imu_ids:
+        if id(conn) in imu_ids:
             w, a = msg.angular_velocity, msg.linear_acceleration
             i_ts.append(_stamp_ns(msg.header))
             i_v.append((w.x, w.y, w.z, a.x, a.y, a.z))

@@ -74,3 +74,21 @@ def test_image_decoders_known_answers():
     msg = SimpleNamespace(height=5, width=12, step=12, encoding="bayer_rggb8", is_bigendian=0, data=img.ravel())
     with pytest.raises(ValueError, match="bayer_rggb8"):
         image_from_msg(msg, "sensor_msgs/msg/Image")
+
+
+def test_ground_truth_from_transform_stamped_and_pose_stamped():
+    from runtime.io.bag import _ground_truth, _pose_from_msg
+
+    v = lambda **k: SimpleNamespace(**k)  # noqa: E731
+    q = v(x=0.0, y=0.0, z=np.sin(np.pi / 4), w=np.cos(np.pi / 4))  # 90 deg about z
+    tf = v(transform=v(translation=v(x=1.0, y=2.0, z=3.0), rotation=q))
+    ps = v(pose=v(position=v(x=1.0, y=2.0, z=3.0), orientation=q))
+    p1, q1 = _pose_from_msg(tf, "geometry_msgs/msg/TransformStamped")
+    p2, q2 = _pose_from_msg(ps, "geometry_msgs/msg/PoseStamped")
+    assert np.array_equal(p1, p2) and np.array_equal(q1, q2) and p1.tolist() == [1.0, 2.0, 3.0]
+    gt = _ground_truth(np.array([0, 1_000_000_000]), np.stack([p1, p1 + [0.5, 0, 0]]), np.stack([q1, q1]))
+    np.testing.assert_allclose(gt.T_w_b[0, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(gt.v_w[0], [0.5, 0, 0])
+    np.testing.assert_allclose(gt.q_wxyz[0], [q.w, 0, 0, q.z])
+    with pytest.raises(BagFormatError, match="norm"):
+        _ground_truth(np.array([0, 1]), np.zeros((2, 3)), np.array([[0, 0, 0, 2.0], [0, 0, 0, 1.0]]))

@@ -168,7 +168,7 @@ def run_ours(system: str, seq: Path, out: Path, timeout: float) -> dict:
         "rc": r.returncode,
         "frames": n,
         "frames_with_pose": int(m.get("frames_with_pose") or 0),
-        "losses": m.get("relocalisations"),
+        "losses": len(m.get("relocalisations") or []),  # losses that ended in a relocalisation
         "resets": None,
         "loop_wall_s": (n / m["fps"]) if m.get("fps") else math.nan,
         "loop_cpu_s": m.get("cpu_s", math.nan),

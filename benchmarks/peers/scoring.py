@@ -88,7 +88,7 @@ def score(
 
 def median_range(values) -> tuple[float, float, float]:
     """Median, minimum and maximum of the finite values (all nan when none is finite)."""
-    v = sorted(float(x) for x in values if x is not None and math.isfinite(float(x)))
+    v = sorted(float(x) for x in values if isinstance(x, (int, float)) and math.isfinite(float(x)))
     if not v:
         return math.nan, math.nan, math.nan
     n = len(v)

@@ -317,7 +317,7 @@ def print_table(rows: list[dict]) -> None:
         )
 
 
-def combine(files: list[Path], out: Path) -> dict:
+def combine(files: list[Path], out: Path, notes: list[str] | None = None) -> dict:
     """Merge result files of parallel invocations (rows of a later file replace the same system and sequence)."""
     parts = [json.loads(f.read_text()) for f in files]
     rows: dict = {}
@@ -329,6 +329,7 @@ def combine(files: list[Path], out: Path) -> dict:
     res["rows"] = list(rows.values())
     res["ratios"] = ratios(res["rows"])
     res["runs"] = [r for p in parts for r in p.get("runs", [])]
+    res["notes"] = [n for p in parts for n in p.get("notes", [])] + list(notes or [])
     res["machine"] = {**res["machine"], "loadavg_each_run": [p["machine"].get("loadavg") for p in parts]}
     print_table(res["rows"])
     write_json(out, res)
@@ -361,9 +362,10 @@ def main(argv: list[str] | None = None) -> dict:
         metavar="JSON",
         help="only merge these result files (runs made in parallel) into --out, recomputing the ratios",
     )
+    ap.add_argument("--note", action="append", default=[], help="a line for the report page's notes (repeatable)")
     args = ap.parse_args(argv)
     if args.combine:
-        return combine([Path(p) for p in args.combine], Path(args.out))
+        return combine([Path(p) for p in args.combine], Path(args.out), args.note)
     data, work = Path(args.data), Path(args.work)
     data.mkdir(parents=True, exist_ok=True)
     vocab_path, vocab_note = (None, None)
@@ -411,6 +413,7 @@ def main(argv: list[str] | None = None) -> dict:
         "rows": rows,
         "ratios": ratios(rows),
         "runs": [{k: v for k, v in r.items()} for r in raw],
+        "notes": args.note,
     }
     write_json(args.out, res)
     print(f"wrote {args.out}")

@@ -223,3 +223,17 @@ def test_vocabulary_text_round_trip_and_words():
     assert not (words[0] & words[1]) and not (words[1] & words[2]) and not (words[0] & words[2])
     # every image holds every cluster: the words of the first level are in all images, IDF weight log(6/6) = 0
     assert np.all(back["weight"] >= 0)
+
+
+def test_per_frame_errors_follow_the_scoring():
+    from benchmarks.peers.plot_errors import aligned_errors
+
+    gt_ts, gt_T = _traj()
+    T_b_c = np.array(T_BS)
+    est = _sim3(gt_T @ T_b_c, 0.5, np.eye(3), np.array([3.0, 0.0, 0.0]))
+    est[100:, :3, 3] += np.array([0.0, 0.0, 0.02 * 0.5])  # a 2 cm jump (in the estimate's scale) from frame 100 on
+    ts, err = aligned_errors("cuvslam-mono", gt_ts, est, gt_ts, gt_T, T_b_c)
+    assert ts.size == 200 and err.max() > 2 * err.min()  # the jump shows in the per-frame curve
+    rmse = float(np.sqrt(np.mean(err**2)))
+    ref = scoring.score("cuvslam-mono", gt_ts, est, gt_ts, gt_T, T_b_c)["sim3"]["ate_m"]
+    assert rmse == pytest.approx(ref, rel=1e-9) and 0.005 < rmse < 0.02

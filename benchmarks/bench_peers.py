@@ -187,6 +187,7 @@ def run_peer(system: str, seq: Path, out: Path, vocab: Path | None, args) -> dic
     if vocab is not None:
         cmd += ["--vocab", str(vocab)]
     r, wall, cpu = _child(cmd, args.timeout)
+    (out / "log.txt").write_text(f"{r.stdout}\n--- stderr ---\n{r.stderr}")  # the peer's own messages (resets, ...)
     f = out / "result.json"
     if r.returncode != 0 or not f.is_file():
         tail = (r.stderr.strip().splitlines() or r.stdout.strip().splitlines() or ["no output"])[-1]

@@ -277,7 +277,7 @@ def ratios(rows: list[dict]) -> list[dict]:
             continue
         for ours in OURS:
             o = idx.get((ours, r["sequence"], r["alignment"]))
-            if o is None:
+            if o is None or not o["tracked_frac"] > 0:  # ours did not track: no time per tracked frame to compare
                 continue
             out.append(
                 {

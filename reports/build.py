@@ -795,6 +795,14 @@ def peers_page() -> str | None:
         ]
     if d.get("notes"):
         parts += ["Notes:", ""] + [f"- {n}" for n in d["notes"]] + [""]
+    for png in sorted(PEERS_PAGE.parent.glob("peers_*.png")):
+        seq = png.stem[len("peers_") :]
+        parts += [
+            f"Per-frame error on `{seq}` (log scale; `python -m benchmarks.peers.plot_errors --sequence {seq} ...`):",
+            "",
+            f"![{seq}]({png.name})",
+            "",
+        ]
     parts.append(_source_block([f], d.get("command", "python benchmarks/bench_peers.py"), _machine(d.get("machine"))))
     return "\n".join(parts).rstrip() + "\n"
 

@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> Path:
         )
     ax.set_xlabel("time [s]")
     ax.set_ylabel("position error [mm]")
+    ax.set_yscale("log")
     ax.set_title(f"{a.sequence}: per-frame error after Sim(3) alignment (run 0 of each system)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)

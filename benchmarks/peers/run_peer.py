@@ -77,7 +77,9 @@ def _read_euroc_traj(path: Path, t0_ns: int, frame_ts: np.ndarray) -> tuple[np.n
     return ts, T[keep]
 
 
-def run_orbslam3(seq: Path, out: Path, inertial: bool, vocab: Path, imu_noise_scale: float) -> dict:
+def run_orbslam3(seq: Path, out: Path, inertial: bool, vocab: Path, imu_noise_scale: float, pace: float = 0.0) -> dict:
+    """``pace`` > 0: at least that many wall seconds per frame (sleeping after the track call), so that ORB-SLAM3's
+    local mapping and IMU initialisation threads keep up with tracking on a loaded machine."""
     import cv2
     import pyorbslam3 as pos
 
@@ -97,7 +99,7 @@ def run_orbslam3(seq: Path, out: Path, inertial: bool, vocab: Path, imu_noise_sc
     seen_ok = False
     last_imu = 0
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    for t, p in zip(ts, paths, strict=True):
+    for i, (t, p) in enumerate(zip(ts, paths, strict=True)):
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise FileNotFoundError(f"{p}: unreadable image")
@@ -108,6 +110,8 @@ def run_orbslam3(seq: Path, out: Path, inertial: bool, vocab: Path, imu_noise_sc
             last_imu = k
         else:
             r = slam.track_monocular(img, ts_s)
+        if pace > 0:
+            time.sleep(max(0.0, pace - (time.perf_counter() - wall0) + i * pace))
         name = str(r.state).split(".")[-1]
         states[name] = states.get(name, 0) + 1
         if r.pose_valid and r.pose_wc is not None:
@@ -198,6 +202,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", required=True)
     ap.add_argument("--vocab", help="ORB vocabulary (DBoW2 text) for ORB-SLAM3")
     ap.add_argument("--imu-noise-scale", type=float, default=1.0)
+    ap.add_argument("--pace", type=float, default=0.0, help="ORB-SLAM3: minimum wall seconds per frame (0: none)")
     a = ap.parse_args(argv)
     seq, out = Path(a.sequence), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -205,7 +210,8 @@ def main(argv: list[str] | None = None) -> dict:
     if a.system.startswith("orbslam3"):
         if not a.vocab or not Path(a.vocab).is_file():
             raise SystemExit(f"run_peer: --vocab must name an ORB vocabulary file, got {a.vocab!r}")
-        res = run_orbslam3(seq, out, a.system.endswith("inertial"), Path(a.vocab), a.imu_noise_scale)
+        res = run_orbslam3(seq, out, a.system.endswith("inertial"), Path(a.vocab), a.imu_noise_scale, a.pace)
+        res["pace_s"] = a.pace
     else:
         res = run_cuvslam(seq, out)
     res["system"] = a.system

@@ -201,7 +201,7 @@ def run_peer(system: str, seq: Path, out: Path, vocab: Path | None, args) -> dic
         }
     m = json.loads(f.read_text())
     if system == "cuvslam-mono":  # its counters are logged at the end: "... resets=N ..."
-        found = re.findall(r"resets\S*?=\S*?(\d+)", re.sub(r"\x1b\[[0-9;]*m", "", r.stderr))
+        found = re.findall(r"resets\S*?=\S*?(\d+)", re.sub(r"\x1b\[[0-9;]*m", "", r.stdout + r.stderr))
         m["resets"] = int(found[-1]) if found else None
     return {
         "rc": 0,

@@ -326,7 +326,8 @@ def combine(files: list[Path], out: Path, notes: list[str] | None = None) -> dic
         for r in p["rows"]:
             rows[(r["system"], r["sequence"], r["alignment"])] = r
     res = {**parts[0]}
-    res["command"] = " & ".join(p["command"] for p in parts)
+    res["command"] = " & ".join(p["command"] for p in parts) + ", then python benchmarks/bench_peers.py --combine "
+    res["command"] += " ".join(str(f) for f in files) + f" --out {out}" + (" --note ..." if notes else "")
     res["rows"] = list(rows.values())
     res["ratios"] = ratios(res["rows"])
     res["runs"] = [r for p in parts for r in p.get("runs", [])]

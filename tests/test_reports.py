@@ -41,6 +41,22 @@ def test_committed_report_equals_the_generated_one():
     )
 
 
+def test_committed_peers_page_equals_the_generated_one():
+    build = _build_module()
+    page = build.peers_page()
+    if page is None:
+        pytest.skip("no benchmarks/results/peers.json")
+    if _git("rev-parse", "--is-inside-work-tree") != "true" or _git("rev-parse", "--is-shallow-repository") == "true":
+        pytest.skip("not a full git checkout: the page's date comes from git")
+    if _git("status", "--porcelain", "--", "benchmarks/results/peers.json"):
+        pytest.skip("peers.json not committed yet: commit, then run reports/build.py")
+    assert "not committed" not in page
+    assert (REPO / "reports" / "peers.md").read_text() == page, (
+        "reports/peers.md is out of date: run python reports/build.py and commit it"
+    )
+    assert "peers.md" in build.build() and "peers.md" not in dict(build.records())
+
+
 def test_report_helpers_known_answers():
     build = _build_module()
     assert build._mean_std([0.001, 0.003], 1, 1e3) == "2.0 ± 1.0"

@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections import defaultdict, deque
+from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,7 +49,8 @@ from runtime.frontend.keyframes import KeyframeConfig, KeyframeSelector, rotatio
 from runtime.frontend.tracking import FeatureTracker, FrameFeatures, TrackerConfig
 from runtime.frontend.triangulation import TriangulationConfig, triangulate
 from runtime.geometry import inv_T, ns_to_s, s_to_ns, to_pose3
-from runtime.init import InitConfig, StaticInitializer
+from runtime.init import DynamicInitConfig, InitConfig, imu_rest_stats
+from runtime.init.runner import InitRunner, Snapshot, StartState
 from runtime.reloc import Relocalizer, RelocConfig
 from runtime.trajectory import FrameRecord, fill_trajectory
 
@@ -65,6 +66,7 @@ class SlamConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     init: InitConfig = field(default_factory=InitConfig)
+    dynamic_init: DynamicInitConfig = field(default_factory=DynamicInitConfig)
     imu: ImuNoiseConfig = field(default_factory=ImuNoiseConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     reloc: RelocConfig = field(default_factory=RelocConfig)
@@ -76,9 +78,9 @@ class SlamConfig:
     max_track_views: int = 8  # keyframe observations used to triangulate a track
     still_disp_px: float = 0.6  # median track displacement since the last keyframe below this (+ quiet IMU) = still
     still_min_common_tracks: int = 15  # fewer tracks shared with the last keyframe: no image evidence of rest
-    still_window_s: float = 0.1  # s of IMU samples for the rest test
-    still_gyro_rad_s: float = 0.01  # |gyro - bias| bound for rest
-    still_accel_m_s2: float = 0.1  # | |f| - g | and std bound for rest
+    still_window_s: float = 0.25  # s of IMU samples for the rest test (several of init.block_s)
+    still_gyro_rad_s: float = 0.02  # |mean gyro - bias| bound for rest
+    still_accel_m_s2: float = 0.3  # | |mean f| - g | and block-mean spread bound for rest
     lost_min_landmarks: int = 6  # fewer tracked landmarks: visual tracking lost, coasting on the IMU
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
@@ -128,11 +130,15 @@ class SlamSystem:
         self.T_c_b = inv_T(self.T_b_c)
         self.K = camera.pinhole().K
         self.imu = imu
+        self.imu_params = imu_params
         self.pim_params = preintegration_params(imu_params, cfg.imu)
+        self.noise_scales = (cfg.imu.noise_scale, cfg.imu.noise_scale)
         self.backend = SlidingWindowBackend(camera.intrinsics, self.T_b_c, self.pim_params, cfg.backend)
         self.tracker = tracker or FeatureTracker(camera, self.T_b_c, cfg.features, cfg.tracker)
         self.selector = KeyframeSelector(cfg.keyframes)
-        self.initializer = StaticInitializer(cfg.init, cfg.imu.gravity)
+        self.initializer = InitRunner(cfg.init, cfg.dynamic_init, imu, self.T_b_c, camera.fx, cfg.imu.gravity)
+        self.init_info: dict | None = None  # how and when the system initialised (metrics.json)
+        self.t_first: int | None = None  # first frame with IMU
         self.reloc = Relocalizer(cfg.reloc, camera, self.T_b_c, self.backend, self.tracker)
         self._gtsam = gtsam
         self.timers: dict[str, float] = defaultdict(float)
@@ -164,7 +170,6 @@ class SlamSystem:
         self.v_cur: np.ndarray | None = None
         self.track_obs: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # track -> kf -> (xn, uv_u)
         self.last_kf_feats: FrameFeatures | None = None
-        self.flow_hist: deque = deque()
         self.still_since_kf = True
         self.lost = False
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
@@ -196,6 +201,8 @@ class SlamSystem:
         """
         self.n_frames += 1
         t0 = self._tic()
+        if self.t_first is None and ts >= self.imu.t_start:
+            self.t_first = ts
         seg = self._imu_since_last_frame(frame_idx, ts)
         if seg is None:
             return None
@@ -268,11 +275,6 @@ class SlamSystem:
             self.event(ts, f"frame {frame_idx}: image rejected ({e})")
             return None, None
         self.img_ts = ts
-        if not self.initialized:  # snapshots of the tracks for the stillness test of the initialiser
-            self.flow_hist.append((ts, feats.ids, feats.uv))
-            keep_from = ts - s_to_ns(1.5 * self.cfg.init.still_duration_s)
-            while self.flow_hist and self.flow_hist[0][0] < keep_from:
-                self.flow_hist.popleft()
         return feats, image
 
     def _refine(self, T_pred: np.ndarray, feats: FrameFeatures):
@@ -349,50 +351,109 @@ class SlamSystem:
 
     def _still(self, ts: int, disp_px: float | None, kf: Keyframe) -> bool:
         """At rest: the tracks have not moved since the last keyframe (median ``disp_px``; None without enough
-        common tracks: without image evidence constant-velocity motion would look still) and the IMU is quiet."""
+        common tracks: without image evidence constant-velocity motion would look still) and the IMU's
+        low-frequency content is quiet (the rule of :mod:`runtime.init.static`, robust to vibration)."""
         c = self.cfg
         if disp_px is None or disp_px > c.still_disp_px:
             return False
-        _, g, a = self.imu.window(ts - s_to_ns(c.still_window_s), ts)
-        if g.shape[0] < 2:
+        its, g, a = self.imu.window(ts - s_to_ns(c.still_window_s), ts)
+        try:
+            st = imu_rest_stats(its, g, a, c.init.block_s, c.imu.gravity)
+        except ValueError:  # too few samples
             return False
-        g_dev = np.linalg.norm(g.mean(0) - kf.bias[3:])
-        a_std = float(np.max(np.std(a, axis=0)))
-        a_err = abs(float(np.linalg.norm(a.mean(0))) - c.imu.gravity)
-        return g_dev < c.still_gyro_rad_s and a_std < c.still_accel_m_s2 and a_err < c.still_accel_m_s2
+        g_dev = float(np.linalg.norm(g.mean(0) - kf.bias[3:]))
+        return g_dev < c.still_gyro_rad_s and st.accel_std < c.still_accel_m_s2 and st.gravity_err < c.still_accel_m_s2
 
     def _try_initialize(self, frame_idx: int, ts: int, image, feats) -> FrameRecord | None:
         c = self.cfg
-        if image is not None and self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:
-            feats = self.tracker.replenish(ts, image)
-        w0 = ts - s_to_ns(c.init.still_duration_s)
-        its, ig, ia = self.imu.window(w0, ts)
-        flow = None  # median net displacement of the tracks over the window [px]
-        snaps = [s for s in self.flow_hist if s[0] >= w0]
-        if snaps and feats is not None:
-            _, i0, i1 = np.intersect1d(snaps[0][1], feats.ids, assume_unique=True, return_indices=True)
-            if i0.size >= 10:
-                flow = float(np.median(np.linalg.norm(snaps[0][2][i0] - feats.uv[i1], axis=1)))
-        res = self.initializer.check(ts, its, ig, ia, flow)
-        if res is None or feats is None:
+        if image is None or feats is None:
             return None
-        kf = Keyframe(self._kf_id(), ts, frame_idx, res.T_w_b, res.v_w, res.bias, still=True)
-        self.backend.initialize(kf)
+        if self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:
+            feats = self.tracker.replenish(ts, image)
+        keep_image = image if self.dense is not None else None
+        self.initializer.add(Snapshot(frame_idx, ts, feats, keep_image))
+        st = self.initializer.step(ts)
+        if st is None:
+            return None
+        return self._start(st, frame_idx, ts, feats)
+
+    def _start(self, st: StartState, frame_idx: int, ts: int, feats) -> FrameRecord:
+        """Hand the initial states to the window (an in-motion start: all its keyframes, linked by the IMU,
+        then triangulation and LM) and give the frames before initialisation their poses."""
+        self._adapt_imu_noise(st.frames[0][0].ts if st.frames else st.keyframes[0][0].ts, ts)
+        prev, kf_ids = None, []
+        for snap, T, v in st.keyframes:
+            kf = Keyframe(self._kf_id(), snap.ts, snap.frame_idx, T, v, st.bias, still=st.method == "static")
+            if prev is None:
+                self.backend.initialize(kf, st.sigmas)
+            else:
+                pim = self._new_pim(st.bias)
+                integrate(pim, *self.imu.segment(prev.ts, kf.ts))
+                self.backend.add_keyframe(kf, pim)
+            self._register_kf_observations(kf.kf_id, snap.feats)
+            if self.dense is not None and snap.image is not None:
+                self.dense.on_keyframe(self.backend, kf.kf_id, snap.frame_idx, snap.image, snap.feats.uv_u)
+            prev = kf
+            kf_ids.append(kf.kf_id)
         self.initialized = True
         self.lost = False
-        self.pim = self._new_pim(kf.bias)
-        self.T_cur, self.v_cur = kf.T_w_b.copy(), kf.v_w.copy()
-        self._register_kf_observations(kf.kf_id, feats)
+        if len(st.keyframes) > 1:
+            self._triangulate(None)
+            self.backend.optimize()
+            drop, _ = self.backend.remove_outliers()
+            if drop.size:
+                self.tracker.drop(drop)
+            self.backend.optimize()
+            self.backend.marginalize()
+        latest = self.backend.latest
+        self.pim = self._new_pim(latest.bias)
+        self.T_cur, self.v_cur = latest.T_w_b.copy(), latest.v_w.copy()
         self.last_kf_feats = feats
         self.still_since_kf = True
-        self.event(
-            ts,
-            f"initialised (static): gyro bias {np.round(res.bias[3:], 4).tolist()} rad/s, roll/pitch from "
-            f"gravity, gyro std {res.gyro_std:.4f} rad/s, accel std {res.accel_std:.3f} m/s^2",
-            logging.INFO,
-        )
-        self.kf_reasons["init"] += 1
-        return self._record(frame_idx, ts, True, "still")
+        self.kf_reasons["init"] += len(st.keyframes)
+        firsts = [(snap.ts, k, T) for (snap, T, _), k in zip(st.keyframes, kf_ids, strict=True)]
+        for snap, T in sorted([(k[0], k[1]) for k in st.keyframes] + st.frames, key=lambda x: x[0].ts):
+            t_ref, ref_id, T_ref = max([f for f in firsts if f[0] <= snap.ts], default=firsts[0], key=lambda f: f[0])
+            is_kf = t_ref == snap.ts
+            rec = FrameRecord(snap.ts, snap.frame_idx, ref_id, inv_T(T_ref) @ T, T.copy(), is_kf, "init")
+            if is_kf:
+                rec.T_created = T.copy()
+            self.records.append(rec)
+        t_after = ns_to_s(ts - self.t_first) if self.t_first is not None else 0.0
+        self.init_info = {
+            "method": st.method,
+            "t_s": round(ns_to_s(ts), 4),
+            "after_s": round(t_after, 3),
+            "imu_noise_scales": [round(x, 2) for x in self.noise_scales],
+        }
+        self.init_info.update(st.info)
+        self.event(ts, f"initialised ({st.method}) {t_after:.2f} s after the first frame: {st.info}", logging.INFO)
+        return self.records[-1]
+
+    def _adapt_imu_noise(self, t0: int, t1: int) -> None:
+        """Raise the IMU white-noise densities to the level measured over ``[t0, t1)`` (the spread of the
+        samples about their 50 ms means: white noise plus vibration, which the sensor.yaml densities of a
+        MAV's IMU do not include)."""
+        c = self.cfg.imu
+        its, g, a = self.imu.window(t0, t1)
+        if not c.adapt_noise or its.size < 20:
+            return
+        st = imu_rest_stats(its, g, a, self.cfg.init.block_s, c.gravity)
+        root_rate = np.sqrt(float(self.imu.rate_hz))
+        meas = (st.gyro_noise / root_rate, st.accel_noise / root_rate)  # densities
+        stated = (self.imu_params.gyro_noise_density, self.imu_params.accel_noise_density)
+        scales = tuple(float(np.clip(m / s, c.noise_scale, c.max_noise_scale)) for m, s in zip(meas, stated, strict=True))
+        self.noise_scales = scales
+        if max(scales) > 1.5 * c.noise_scale:
+            self.pim_params = preintegration_params(self.imu_params, c, scales)
+            self.backend.preint_params = self.pim_params
+            self.event(
+                t1,
+                f"IMU noisier than its calibration (vibration?): measured {meas[0]:.2e} rad/s/sqrt(Hz), "
+                f"{meas[1]:.2e} m/s^2/sqrt(Hz); white-noise densities raised x{scales[0]:.1f} (gyro), "
+                f"x{scales[1]:.1f} (accel)",
+                logging.INFO,
+            )
 
     def _kf_id(self) -> int:
         k = self.next_kf_id

@@ -30,20 +30,23 @@ class ImuNoiseConfig:
     the simulator is exact, so 1.0 is right there.
     """
 
-    noise_scale: float = 1.0  # white-noise densities (gyro, accel)
+    noise_scale: float = 1.0  # white-noise densities (gyro, accel); the floor when adapt_noise is on
     walk_scale: float = 1.0  # bias random walks
     integration_sigma: float = 1e-4  # [m/s^2 * sqrt(s)... ] position integration noise (GTSAM's integrationCovariance)
     gravity: float = GRAVITY
     gap_factor: float = 4.0  # an interval longer than gap_factor / rate is logged as a gap
+    adapt_noise: bool = True  # raise the white-noise densities to the level measured at initialisation
+    max_noise_scale: float = 30.0  # bound on that raise
 
 
-def preintegration_params(imu, cfg: ImuNoiseConfig | None = None):
+def preintegration_params(imu, cfg: ImuNoiseConfig | None = None, scales: tuple[float, float] | None = None):
     """``gtsam.PreintegrationCombinedParams`` from the io ``ImuParams`` (continuous-time densities).
 
     Args:
         imu: object with ``gyro_noise_density`` [rad/s/sqrt(Hz)], ``gyro_random_walk`` [rad/s^2/sqrt(Hz)],
             ``accel_noise_density`` [m/s^2/sqrt(Hz)], ``accel_random_walk`` [m/s^3/sqrt(Hz)].
         cfg: noise multipliers.
+        scales: (gyro, accel) white-noise multipliers in place of ``cfg.noise_scale`` (e.g. measured).
 
     Returns:
         Parameters with gravity ``(0, 0, -g)`` (``MakeSharedU``); covariances are densities squared (GTSAM
@@ -59,8 +62,9 @@ def preintegration_params(imu, cfg: ImuNoiseConfig | None = None):
             raise ValueError(f"IMU parameter {name}={val!r} must be a positive finite number")
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(cfg.gravity)
     I3 = np.eye(3)
-    p.setGyroscopeCovariance((cfg.noise_scale * imu.gyro_noise_density) ** 2 * I3)
-    p.setAccelerometerCovariance((cfg.noise_scale * imu.accel_noise_density) ** 2 * I3)
+    sg, sa = scales if scales is not None else (cfg.noise_scale, cfg.noise_scale)
+    p.setGyroscopeCovariance((sg * imu.gyro_noise_density) ** 2 * I3)
+    p.setAccelerometerCovariance((sa * imu.accel_noise_density) ** 2 * I3)
     p.setIntegrationCovariance(cfg.integration_sigma**2 * I3)
     p.setBiasOmegaCovariance((cfg.walk_scale * imu.gyro_random_walk) ** 2 * I3)
     p.setBiasAccCovariance((cfg.walk_scale * imu.accel_random_walk) ** 2 * I3)

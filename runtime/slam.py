@@ -52,6 +52,7 @@ from runtime.geometry import inv_T, ns_to_s, s_to_ns, to_pose3
 from runtime.init import DynamicInitConfig, InitConfig, imu_rest_stats
 from runtime.init.runner import InitRunner, Snapshot, StartState
 from runtime.reloc import Relocalizer, RelocConfig
+from runtime.start import adapt_imu_noise, backfill_records, seed_window, try_restart
 from runtime.trajectory import FrameRecord, fill_trajectory
 
 log = logging.getLogger(__name__)
@@ -86,6 +87,7 @@ class SlamConfig:
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
     imu_gap_reinit_s: float = 0.25  # an IMU gap longer than this re-initialises from the propagated state
+    reinit_after_lost_s: float = 2.0  # visual tracking lost this long: re-initialise in motion (same map frame)
     trajectory_mode: str = "refined"  # refined | online
 
     def __post_init__(self) -> None:
@@ -138,6 +140,7 @@ class SlamSystem:
         self.selector = KeyframeSelector(cfg.keyframes)
         self.initializer = InitRunner(cfg.init, cfg.dynamic_init, imu, self.T_b_c, camera.fx, cfg.imu.gravity)
         self.init_info: dict | None = None  # how and when the system initialised (metrics.json)
+        self.restarts: list[dict] = []  # re-initialisations in the same map frame (metrics.json)
         self.t_first: int | None = None  # first frame with IMU
         self.reloc = Relocalizer(cfg.reloc, camera, self.T_b_c, self.backend, self.tracker)
         self._gtsam = gtsam
@@ -174,6 +177,7 @@ class SlamSystem:
         self.lost = False
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
+        self.restart_until: int | None = None  # ns: try an in-motion re-initialisation until then
         self.initializer.reset()
 
     def event(self, ts: int, msg: str, level: int = logging.WARNING) -> None:
@@ -234,6 +238,10 @@ class SlamSystem:
         T_cur, feats, n_lm = self._refine(T_pred, feats)
         self.T_cur, self.v_cur = T_cur, v_pred
         self._update_lost(ts, n_lm)
+        if try_restart(self, frame_idx, ts, image, feats):
+            self._toc("init", t0)
+            last = self.records[-1] if self.records else None
+            return last if last is not None and last.ts == ts else self._record(frame_idx, ts, False, "reinit")
         t0 = self._toc("refine", t0)
         is_kf, why, still = self._decide_keyframe(ts, feats, T_cur, kf, n_lm, gap)
         t0 = self._toc("keyframe", t0)
@@ -371,89 +379,34 @@ class SlamSystem:
         if self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:
             feats = self.tracker.replenish(ts, image)
         keep_image = image if self.dense is not None else None
-        self.initializer.add(Snapshot(frame_idx, ts, feats, keep_image))
+        self.initializer.add(Snapshot(frame_idx, ts, feats, keep_image), keep_since=self.t_first)
         st = self.initializer.step(ts)
         if st is None:
             return None
         return self._start(st, frame_idx, ts, feats)
 
     def _start(self, st: StartState, frame_idx: int, ts: int, feats) -> FrameRecord:
-        """Hand the initial states to the window (an in-motion start: all its keyframes, linked by the IMU,
-        then triangulation and LM) and give the frames before initialisation their poses."""
-        self._adapt_imu_noise(st.frames[0][0].ts if st.frames else st.keyframes[0][0].ts, ts)
-        prev, kf_ids = None, []
-        for snap, T, v in st.keyframes:
-            kf = Keyframe(self._kf_id(), snap.ts, snap.frame_idx, T, v, st.bias, still=st.method == "static")
-            if prev is None:
-                self.backend.initialize(kf, st.sigmas)
-            else:
-                pim = self._new_pim(st.bias)
-                integrate(pim, *self.imu.segment(prev.ts, kf.ts))
-                self.backend.add_keyframe(kf, pim)
-            self._register_kf_observations(kf.kf_id, snap.feats)
-            if self.dense is not None and snap.image is not None:
-                self.dense.on_keyframe(self.backend, kf.kf_id, snap.frame_idx, snap.image, snap.feats.uv_u)
-            prev = kf
-            kf_ids.append(kf.kf_id)
+        """Hand the initial states to the window and give the frames before initialisation their poses."""
+        t0 = st.frames[0][0].ts if st.frames else st.keyframes[0][0].ts
+        scales = adapt_imu_noise(self, t0, ts)
+        if scales is not None:
+            self.noise_scales = scales
+        kf_ids = seed_window(self, st)
         self.initialized = True
         self.lost = False
-        if len(st.keyframes) > 1:
-            self._triangulate(None)
-            self.backend.optimize()
-            drop, _ = self.backend.remove_outliers()
-            if drop.size:
-                self.tracker.drop(drop)
-            self.backend.optimize()
-            self.backend.marginalize()
-        latest = self.backend.latest
-        self.pim = self._new_pim(latest.bias)
-        self.T_cur, self.v_cur = latest.T_w_b.copy(), latest.v_w.copy()
         self.last_kf_feats = feats
-        self.still_since_kf = True
-        self.kf_reasons["init"] += len(st.keyframes)
-        firsts = [(snap.ts, k, T) for (snap, T, _), k in zip(st.keyframes, kf_ids, strict=True)]
-        for snap, T in sorted([(k[0], k[1]) for k in st.keyframes] + st.frames, key=lambda x: x[0].ts):
-            t_ref, ref_id, T_ref = max([f for f in firsts if f[0] <= snap.ts], default=firsts[0], key=lambda f: f[0])
-            is_kf = t_ref == snap.ts
-            rec = FrameRecord(snap.ts, snap.frame_idx, ref_id, inv_T(T_ref) @ T, T.copy(), is_kf, "init")
-            if is_kf:
-                rec.T_created = T.copy()
-            self.records.append(rec)
+        backfill_records(self, st, kf_ids)
         t_after = ns_to_s(ts - self.t_first) if self.t_first is not None else 0.0
         self.init_info = {
             "method": st.method,
             "t_s": round(ns_to_s(ts), 4),
             "after_s": round(t_after, 3),
             "imu_noise_scales": [round(x, 2) for x in self.noise_scales],
+            **st.info,
         }
-        self.init_info.update(st.info)
+        self.restart_until = ts + s_to_ns(self.cfg.dynamic_init.refine_within_s) if st.method == "hover" else None
         self.event(ts, f"initialised ({st.method}) {t_after:.2f} s after the first frame: {st.info}", logging.INFO)
         return self.records[-1]
-
-    def _adapt_imu_noise(self, t0: int, t1: int) -> None:
-        """Raise the IMU white-noise densities to the level measured over ``[t0, t1)`` (the spread of the
-        samples about their 50 ms means: white noise plus vibration, which the sensor.yaml densities of a
-        MAV's IMU do not include)."""
-        c = self.cfg.imu
-        its, g, a = self.imu.window(t0, t1)
-        if not c.adapt_noise or its.size < 20:
-            return
-        st = imu_rest_stats(its, g, a, self.cfg.init.block_s, c.gravity)
-        root_rate = np.sqrt(float(self.imu.rate_hz))
-        meas = (st.gyro_noise / root_rate, st.accel_noise / root_rate)  # densities
-        stated = (self.imu_params.gyro_noise_density, self.imu_params.accel_noise_density)
-        scales = tuple(float(np.clip(m / s, c.noise_scale, c.max_noise_scale)) for m, s in zip(meas, stated, strict=True))
-        self.noise_scales = scales
-        if max(scales) > 1.5 * c.noise_scale:
-            self.pim_params = preintegration_params(self.imu_params, c, scales)
-            self.backend.preint_params = self.pim_params
-            self.event(
-                t1,
-                f"IMU noisier than its calibration (vibration?): measured {meas[0]:.2e} rad/s/sqrt(Hz), "
-                f"{meas[1]:.2e} m/s^2/sqrt(Hz); white-noise densities raised x{scales[0]:.1f} (gyro), "
-                f"x{scales[1]:.1f} (accel)",
-                logging.INFO,
-            )
 
     def _kf_id(self) -> int:
         k = self.next_kf_id

@@ -21,7 +21,6 @@ from runtime.geometry import GRAVITY, GRAVITY_W, ns_to_s, so3_exp
 log = logging.getLogger(__name__)
 
 
-
 @dataclass
 class ImuNoiseConfig:
     """Multipliers applied to the sensor.yaml densities (1.0 = as calibrated).

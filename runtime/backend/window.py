@@ -185,7 +185,10 @@ class SlidingWindowBackend:
         """
         self.clear_window()
         self.init_kf_id = kf.kf_id
-        c = {k: getattr(self.cfg, f"prior_{k}_sigma") for k in ("roll_pitch", "yaw", "pos", "vel", "acc_bias", "gyro_bias")}
+        c = {
+            k: getattr(self.cfg, f"prior_{k}_sigma")
+            for k in ("roll_pitch", "yaw", "pos", "vel", "acc_bias", "gyro_bias")
+        }
         unknown = set(sigmas or {}) - set(c)
         if unknown:
             raise ValueError(f"unknown prior sigma(s) {sorted(unknown)}; known: {sorted(c)}")

@@ -16,7 +16,8 @@ For a sequence with no period at rest (a MAV already flying, a hand-held camera 
 
    linear in ``(V_0..V_n, g, s)``. Then gravity is refined on the sphere ``|g| = 9.81`` (two tangent
    parameters, four iterations).
-4. **Checks**: positive scale, a plausible median depth of the scaled structure (``min_depth_m``), ``| |g| - 9.81 |`` of the unconstrained solve below ``gravity_tol``, the
+4. **Checks**: positive scale, a plausible median depth of the scaled structure (``min_depth_m``),
+   ``| |g| - 9.81 |`` of the unconstrained solve below ``gravity_tol``, the
    alignment's position residual below ``max_residual_m``, the SfM's reprojection RMS below ``max_reproj_px``.
 
 When the camera only turns (a hovering MAV: the rotation-only fit to the oldest frame leaves less than
@@ -63,6 +64,7 @@ class DynamicInitConfig:
     ba_iterations: int = 15
     hover_max_px: float = 2.0  # rotation-only fit residual below this over the window: turning in place
     try_every_s: float = 0.1  # s between attempts
+    refine_within_s: float = 10.0  # after a start turning in place, re-initialise in motion within this time
     # priors on the first state (looser than at rest: estimated in motion)
     prior_vel_sigma: float = 0.1  # m/s
     prior_hover_vel_sigma: float = 0.2  # m/s, velocity taken as 0 while hovering
@@ -159,9 +161,7 @@ def _bundle_adjust(T_w_c: np.ndarray, X: np.ndarray, obs: list, focal: float, cf
     res = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     T = np.array([res.atPose3(Xk(f)).matrix() for f in range(F)])
     P = np.array([res.atPoint3(Lk(m)) for m in range(len(obs))]).reshape(-1, 3)
-    err = [
-        np.linalg.norm(_project(T[f], P[m]) - x) * focal for m, o in enumerate(obs) for f, x in o
-    ]
+    err = [np.linalg.norm(_project(T[f], P[m]) - x) * focal for m, o in enumerate(obs) for f, x in o]
     return T, P, float(np.sqrt(np.mean(np.square(err)))) if err else np.inf
 
 
@@ -179,7 +179,9 @@ def _two_view(a, b, focal: float, cfg: DynamicInitConfig):
         raise InitFailed(f"{i0.size} tracks common to the pair (< {cfg.min_tracks})")
     _, rot_px, _ = rotation_only(a, b, focal)
     if rot_px < cfg.min_parallax_px:
-        raise InitFailed(f"rotation-compensated parallax {rot_px:.1f} px (< {cfg.min_parallax_px}): too little translation")
+        raise InitFailed(
+            f"rotation-compensated parallax {rot_px:.1f} px (< {cfg.min_parallax_px}): too little translation"
+        )
     x0, x1 = a.xn[i0], b.xn[i1]
     E, inl = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=cfg.ransac_px / focal)
     if E is None or E.shape != (3, 3):
@@ -240,12 +242,16 @@ def structure_from_motion(frames: list, focal: float, cfg: DynamicInitConfig) ->
     T_n = T_w_c[-1]
     depth = float(np.median((P - T_n[:3, 3]) @ T_n[:3, :3][:, 2]))  # along the newest camera's axis
     T_w_c = np.einsum("ij,fjk->fik", inv_T(T_w_c[0]), T_w_c)  # c0 = the oldest frame
-    return T_w_c, depth, {
-        "sfm_points": int(lm_ids.size),
-        "sfm_reproj_px": round(rms, 3),
-        "parallax_deg": round(par, 2),
-        "pair": [l, F - 1],
-    }
+    return (
+        T_w_c,
+        depth,
+        {
+            "sfm_points": int(lm_ids.size),
+            "sfm_reproj_px": round(rms, 3),
+            "parallax_deg": round(par, 2),
+            "pair": [l, F - 1],
+        },
+    )
 
 
 # ---------------------------------------------------------------------------------------------- alignment

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from runtime.geometry import interpolate_poses, ns_to_s, s_to_ns
-from runtime.init.dynamic import DynamicInitConfig, InitFailed, initialize_hovering, initialize_in_motion
+from runtime.init.dynamic import DynamicInitConfig, InitFailed, initialize_hovering, initialize_in_motion, rotation_only
 from runtime.init.static import InitConfig, StaticInitializer
 
 log = logging.getLogger(__name__)
@@ -71,11 +71,18 @@ class InitRunner:
         self.static.reset()
         self.last_try = None
 
-    def add(self, snap: Snapshot) -> None:
+    def add(self, snap: Snapshot, keep_since: int | None = None) -> None:
+        """Keep ``snap``; frames older than the windows (or than ``keep_since``, ns, when given, at most
+        ``refine_within_s`` back) are dropped, images older than the window too."""
         self.frames.append(snap)
-        keep = s_to_ns(max(self.cfg.still_duration_s, self.dyn.window_s) + 0.5)
-        while self.frames and self.frames[0].ts < snap.ts - keep:
+        recent = snap.ts - s_to_ns(max(self.cfg.still_duration_s, self.dyn.window_s) + 0.5)
+        oldest = recent if keep_since is None else max(keep_since, snap.ts - s_to_ns(self.dyn.refine_within_s))
+        while self.frames and self.frames[0].ts < oldest:
             self.frames.popleft()
+        for old in self.frames:
+            if old.ts >= recent:
+                break
+            old.image = None
 
     def _flow(self, w0: int) -> float | None:
         """Median net displacement [px] of the tracks since ``w0`` (None: too few common tracks)."""
@@ -95,6 +102,11 @@ class InitRunner:
         if res is not None:
             rest = [(s, res.T_w_b) for s in self.frames if s.ts >= w0 and s is not newest]
             return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest, {}, res.info, res.noise)
+        return self.try_motion(ts, allow_hover=True)
+
+    def try_motion(self, ts: int, allow_hover: bool, since: int | None = None) -> StartState | None:
+        """In motion (or, with ``allow_hover``, turning in place) over the frames of the last ``window_s`` (or
+        all kept frames from ``since``, ns); None when not (yet)."""
         d = self.dyn
         span = ns_to_s(ts - self.frames[0].ts)
         if not d.enabled or span < d.min_window_s:
@@ -102,17 +114,20 @@ class InitRunner:
         if self.last_try is not None and ns_to_s(ts - self.last_try) < d.try_every_s - 1e-6:
             return None
         self.last_try = ts
-        self.tries += 1
-        win = [s for s in self.frames if s.ts >= ts - s_to_ns(d.window_s)]
+        win = [s for s in self.frames if s.ts >= (ts - s_to_ns(d.window_s) if since is None else since)]
         idx = np.unique(np.linspace(0, len(win) - 1, min(d.n_frames, len(win))).round().astype(int))
         sel = [win[i] for i in idx]
         feats = [s.feats for s in sel]
+        _, par_px, n = rotation_only(feats[0], feats[-1], self.focal)  # cheap: skip SfM without translation
         try:
+            if n >= d.min_tracks and par_px < d.min_parallax_px:
+                raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
+            self.tries += 1
             r = initialize_in_motion(feats, self.imu, self.T_b_c, self.focal, d, self.gravity)
             method = "dynamic"
         except InitFailed as e:
             self.last_reason = str(e)
-            if span < d.window_s:
+            if not allow_hover or span < d.window_s:
                 return None
             try:
                 r = initialize_hovering(feats, self.imu, self.T_b_c, self.focal, d)

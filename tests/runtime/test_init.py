@@ -79,7 +79,11 @@ def _vibration(ts, seed=0, gyro_amp=0.055, accel_amp=0.7):
     out = []
     for amp in (gyro_amp, accel_amp):
         ph = rng.uniform(0, 2 * np.pi, (2, 3))
-        out.append(amp * (np.sin(2 * np.pi * 87 * t[:, None] + ph[0]) + np.sin(2 * np.pi * 123 * t[:, None] + ph[1])) / np.sqrt(2))
+        out.append(
+            amp
+            * (np.sin(2 * np.pi * 87 * t[:, None] + ph[0]) + np.sin(2 * np.pi * 123 * t[:, None] + ph[1]))
+            / np.sqrt(2)
+        )
     return out
 
 

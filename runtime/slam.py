@@ -87,7 +87,6 @@ class SlamConfig:
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
     imu_gap_reinit_s: float = 0.25  # an IMU gap longer than this re-initialises from the propagated state
-    reinit_after_lost_s: float = 2.0  # visual tracking lost this long: re-initialise in motion (same map frame)
     trajectory_mode: str = "refined"  # refined | online
 
     def __post_init__(self) -> None:

@@ -93,3 +93,15 @@ def test_rotation_only_fit_and_gyro_bias_known_answers():
     R_w_b = np.stack([so3_exp(w * 0.05 * k) for k in range(6)])
     assert np.allclose(estimate_gyro_bias(R_w_b, segs), bg, atol=1e-7)
     assert np.linalg.norm(so3_log(R_w_b[1])) == pytest.approx(np.linalg.norm(w) * 0.05)
+
+
+def test_frame_alignment_is_a_yaw_and_a_translation():
+    from runtime.geometry import make_T
+    from runtime.start import frame_alignment
+
+    T_new = make_T(so3_exp(np.array([0.1, -0.05, 0.7])), [1.0, 2.0, 0.5])
+    yaw = so3_exp(np.array([0.0, 0.0, -1.2]))
+    T_old = make_T(yaw @ T_new[:3, :3], [4.0, -1.0, 2.0])
+    A = frame_alignment(T_old, T_new)
+    assert np.allclose(A @ T_new, T_old, atol=1e-12)
+    assert np.allclose(A[:3, :3], yaw, atol=1e-12) and np.allclose(A[2, :3], [0, 0, 1])

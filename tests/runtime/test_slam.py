@@ -186,3 +186,27 @@ def test_dense_preset_is_generated_from_the_typed_config():
     text = (Path(__file__).resolve().parents[2] / "conf" / "slam" / "dense_settings" / "default.yaml").read_text()
     assert text == presets()["dense_settings/default.yaml"]
     assert dataclasses.asdict(DenseConfig.from_dict(yaml.safe_load(text))) == dataclasses.asdict(DenseConfig())
+
+
+def test_a_start_turning_in_place_is_refined_in_motion():
+    """The first second barely translates (turning in place): the system starts with zero velocity, then
+    re-initialises in motion once structure from motion works, and the early frames take the new poses."""
+    system, m = run(8.0, motion=Motion(seed=0, t_rest=0.0, t_ramp=0.3))
+    assert system.init_info["method"] == "hover", system.init_info
+    assert len(system.restarts) == 1 and system.restarts[0]["why"] == "after a start turning in place"
+    assert len(system.records) >= 0.97 * 160
+    ts, T = system.trajectory()
+    assert np.all(np.diff(ts) > 0)
+    met = ate(system, m)
+    assert met["ate_se3_rmse_m"] < 0.05, met
+
+
+def test_a_long_loss_is_bridged_reported_and_recovered():
+    system, m = run(14.0, blank=(5.0, 9.0))
+    msgs = [msg for _, msg in system.events]
+    assert any("visual tracking lost" in s for s in msgs)
+    regained = [s for s in msgs if "visual tracking regained" in s or "re-initialised" in s]
+    assert regained, msgs
+    assert len(system.records) == 280 - system.records[0].frame_idx  # every frame with images and IMU
+    assert system.records[-1].status == "tracking"
+    assert ate(system, m)["ate_se3_rmse_m"] < 0.1

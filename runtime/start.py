@@ -4,7 +4,8 @@
 start: all its keyframes linked by the IMU, then triangulation and LM). A *restart* (after a start while turning
 in place, once the motion allows structure from motion) does the same within the current map frame: both
 frames are gravity-aligned, so the new solution is brought in by the yaw and translation that put its newest
-state on the current estimate (:func:`frame_alignment`). :func:`backfill_records` gives the frames before initialisation their poses.
+state on the current estimate (:func:`frame_alignment`). :func:`backfill_records` gives the frames before
+initialisation their poses.
 """
 
 from __future__ import annotations

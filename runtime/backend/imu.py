@@ -235,6 +235,32 @@ def propagate(
     return R, p, v
 
 
+def propagate_back(
+    R_w_b: np.ndarray,
+    p_w: np.ndarray,
+    v_w: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    dt: np.ndarray,
+    bg: np.ndarray | None = None,
+    ba: np.ndarray | None = None,
+    g_w: np.ndarray = GRAVITY_W,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse of :func:`propagate`: the state at the start of the pieces from the state at their end."""
+    R = np.array(R_w_b, dtype=np.float64)
+    p = np.array(p_w, dtype=np.float64)
+    v = np.array(v_w, dtype=np.float64)
+    bg = np.zeros(3) if bg is None else np.asarray(bg, dtype=np.float64)
+    ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
+    dR = so3_exp((gyro - bg) * dt[:, None])
+    for k in range(dt.shape[0] - 1, -1, -1):
+        R = R @ dR[k].T
+        a = R @ (accel[k] - ba) + g_w
+        v = v - a * dt[k]
+        p = p - v * dt[k] - 0.5 * a * dt[k] ** 2
+    return R, p, v
+
+
 def integrate_rotation(gyro: np.ndarray, dt: np.ndarray, bg: np.ndarray | None = None) -> np.ndarray:
     """``R_b0_b1`` (3, 3) from gyro pieces (K, 3) rad/s and dt (K,) s, bias-corrected."""
     bg = np.zeros(3) if bg is None else np.asarray(bg, dtype=np.float64)

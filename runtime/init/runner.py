@@ -11,8 +11,9 @@ Each tracked frame before initialisation is kept (its features, and its image fo
 3. **Turning in place** (:func:`runtime.init.dynamic.initialize_hovering`), when the window spans ``window_s``,
    structure from motion failed and the images show rotation only.
 
-The result names the method and holds the states of the window's frames (keyframes for an in-motion start) and
-the poses of the frames in between, so that the frames before initialisation get poses too.
+The result names the method and holds the states of the window's frames (keyframes for an in-motion start), the
+poses of the frames in between, and those of the older kept frames by integrating the IMU backwards from the
+window's first state, so that every frame before initialisation gets a pose.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from runtime.geometry import interpolate_poses, ns_to_s, s_to_ns
+from runtime.backend.imu import propagate_back
+from runtime.geometry import interpolate_poses, make_T, ns_to_s, s_to_ns
 from runtime.init.dynamic import DynamicInitConfig, InitFailed, initialize_hovering, initialize_in_motion, rotation_only
 from runtime.init.static import InitConfig, StaticInitializer
 
@@ -101,6 +103,7 @@ class InitRunner:
         newest = self.frames[-1]
         if res is not None:
             rest = [(s, res.T_w_b) for s in self.frames if s.ts >= w0 and s is not newest]
+            rest += self._before(rest[0][0] if rest else newest, res.T_w_b, res.v_w, res.bias)
             return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest, {}, res.info, res.noise)
         return self.try_motion(ts, allow_hover=True)
 
@@ -147,5 +150,18 @@ class InitRunner:
         others = [s for s in win if all(s is not k[0] for k in kfs)]
         T_o, inside = interpolate_poses(np.array([s.ts for s in others], np.int64), r.ts, r.T_w_b)
         frames = [(s, T) for s, T, ok in zip(others, T_o, inside, strict=True) if ok]
+        frames += self._before(sel[0], r.T_w_b[0], r.v_w[0], bias)
         info = dict(r.info, attempts=self.tries)
         return StartState(method, kfs, bias, frames, sigmas, info)
+
+    def _before(self, first: Snapshot, T: np.ndarray, v: np.ndarray, bias: np.ndarray) -> list:
+        """Poses of the kept frames older than ``first`` (state ``T``, ``v``), by integrating the IMU backwards,
+        at most ``backfill_s`` back (the unknown accelerometer bias grows the error with the square of time)."""
+        older = [s for s in self.frames if first.ts - s_to_ns(self.dyn.backfill_s) <= s.ts < first.ts]
+        out = []
+        R, p, t = T[:3, :3], T[:3, 3], first.ts
+        for s in reversed(older):
+            R, p, v = propagate_back(R, p, v, *self.imu.segment(s.ts, t), bg=bias[3:], ba=bias[:3])
+            t = s.ts
+            out.append((s, make_T(R, p)))
+        return out

@@ -79,6 +79,7 @@ def run_sequence(
         "events": system.events[:200],
         "n_events": len(system.events),
         "relocalisations": system.relocalisations,
+        "restarts": system.restarts,
         "config": _jsonable(asdict(cfg)),
     }
     if mapper is not None:

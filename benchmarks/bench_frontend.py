@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, cache_dir, markdown_table, slam_machine, write_json
+from benchmarks.common import REPO, cache_dir, markdown_table, run_provenance, slam_machine, write_json
 
 GRID = (8, 6)  # cells (cols, rows) of the spread measure, fixed so that settings compare
 
@@ -299,9 +299,11 @@ def summarise(run: dict, pe: dict, ep: dict, fb: np.ndarray) -> dict:
         "reproj": {k: v for k, v in pe.items() if k != "per_frame_median_px"},
         "epipolar": ep,
         "per_frame": {
-            **{k: list(v) for k, v in per.items()},
-            "age10": alive10.tolist(),
-            "reproj_median_px": [None if np.isnan(x) else float(x) for x in pe.get("per_frame_median_px", [])],
+            **{k: np.round(v, 2).tolist() for k, v in per.items()},
+            "age10": alive10.astype(int).tolist(),
+            "reproj_median_px": [
+                None if np.isnan(x) else round(float(x), 2) for x in pe.get("per_frame_median_px", [])
+            ],
         },
     }
 
@@ -395,6 +397,7 @@ def main(argv=None) -> int:
     print(markdown_table(head, rows))
     out = {
         "machine": slam_machine(),
+        "code": run_provenance(REPO).splitlines()[-1].split(None, 1)[-1],
         "settings": {
             "features": asdict(fcfg),
             "tracker": {**asdict(tcfg), **{k: getattr(tcfg, k) for k in ("fb_threshold_px", "ransac_threshold_px")}},

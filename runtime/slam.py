@@ -442,12 +442,18 @@ class SlamSystem:
                 mask[i, v] = True
         tcfg = base = self.cfg.triangulation
         if self.lost:  # dead-reckoned keyframe poses are off: accept rougher points, the window refines them
+            f = self.cfg.lost_reproj_factor
             tcfg = dataclasses.replace(
-                tcfg, max_reproj_px=tcfg.max_reproj_px * self.cfg.lost_reproj_factor, min_views=max(tcfg.min_views, 3)
+                tcfg,
+                pixel_sigma=tcfg.pixel_sigma * f,
+                max_reproj_px=tcfg.max_reproj_px * f,
+                min_views=max(tcfg.min_views, 3),
             )
         X_w, ok, diag = triangulate(T, xn, mask, focal=self.camera.fx, cfg=tcfg)
         # tracks with enough parallax that still do not fit are bad tracks: stop following them
-        bad = (~ok) & (diag["parallax_deg"] > 2 * base.min_parallax_deg) & (diag["max_err_px"] > 2 * base.max_reproj_px)
+        bad = (
+            (~ok) & (diag["parallax_deg"] > 2 * base.min_parallax_deg) & (diag["max_err_px"] > 2 * base.reproj_bound_px)
+        )
         if bad.any():
             bad_ids = np.array(cand, dtype=np.int64)[bad]
             self.tracker.drop(bad_ids)

@@ -1,6 +1,7 @@
 """``dit-slam``: monocular visual-inertial SLAM on an EuRoC-layout sequence (Hydra config ``conf/slam/slam.yaml``).
 
-    dit-slam [sequence=DIR] [out=DIR] [viz=none|rerun] [runtime=default|fast] [runtime.x.y=...]
+    dit-slam [sequence=DIR|FILE.bag [calib=DIR] [topics.image=...]] [out=DIR] [viz=none|rerun]
+             [runtime=default|fast] [runtime.x.y=...]
              [dense=true [model=DIR] [dense_settings.x=...]]
 
 With no ``sequence`` it renders the default synthetic sequence (``sim`` settings of the config) into a cache
@@ -58,8 +59,9 @@ def _settings(cfg):
 
 
 def _sequence(cfg):
-    """The sequence to run on: ``sequence=DIR``, or the default synthetic one (rendered once)."""
-    from runtime.io.euroc import read_euroc
+    """The sequence to run on: ``sequence=DIR`` or a bag (with ``calib=DIR``), or the default synthetic one."""
+    from runtime.io.bag import BagTopics
+    from runtime.io.sequence import open_sequence
 
     if cfg.sequence is None:
         from sim.cache import cached_sequence
@@ -79,8 +81,11 @@ def _sequence(cfg):
             raise UsageError(f"cannot render the default sequence: {e}") from e
     else:
         root = Path(str(cfg.sequence)).expanduser()
+    t = cfg.get("topics") or {}
+    topics = BagTopics(t.get("image"), t.get("imu"), t.get("gt", "auto"))
+    calib = Path(str(cfg.calib)).expanduser() if cfg.get("calib") is not None else None
     try:
-        return read_euroc(root)
+        return open_sequence(root, calib, topics)
     except (ValueError, OSError) as e:  # EurocFormatError names the file and the problem
         raise UsageError(f"cannot read the sequence: {e}") from e
 

@@ -209,9 +209,16 @@ def pose_sigmas(rot_rad: float | np.ndarray, trans_m: float | np.ndarray) -> np.
 # --------------------------------------------------------------------------- camera model
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole camera with radial-tangential (plumb bob) distortion, as EuRoC's ``sensor.yaml``.
+    """Pinhole camera with lens distortion, as EuRoC's ``sensor.yaml`` and Kalibr's ``camchain.yaml`` give it.
 
-    ``dist = (k1, k2, p1, p2)``; image size ``(width, height)`` in pixels.
+    ``model`` names the distortion: ``"radtan"`` (radial-tangential / plumb bob, ``dist = (k1, k2, p1, p2)``) or
+    ``"equidistant"`` (Kannala-Brandt fisheye as OpenCV's ``cv2.fisheye``, ``dist = (k1, k2, k3, k4)``: a ray at
+    angle ``theta`` from the optical axis lands at radius ``theta (1 + k1 theta^2 + ... + k4 theta^8)`` on the
+    normalised plane). Image size ``(width, height)`` in pixels.
+
+    >>> fish = Camera(100, 100, 50, 40, 100, 80, (0.0, 0.0, 0.0, 0.0), "equidistant")
+    >>> fish.project(np.array([1.0, 0.0, 1.0]))[0].round(6).tolist()  # 45 deg: radius pi/4 on the plane
+    [128.539816, 40.0]
     """
 
     fx: float
@@ -221,6 +228,11 @@ class Camera:
     width: int
     height: int
     dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    model: str = "radtan"
+
+    def __post_init__(self) -> None:
+        if self.model not in CAMERA_MODELS:
+            raise ValueError(f"camera model {self.model!r} is not one of {CAMERA_MODELS}")
 
     @property
     def K(self) -> np.ndarray:
@@ -231,8 +243,13 @@ class Camera:
         return (self.fx, self.fy, self.cx, self.cy)
 
     @property
+    def is_fisheye(self) -> bool:
+        return self.model == "equidistant"
+
+    @property
     def has_distortion(self) -> bool:
-        return any(abs(d) > 0 for d in self.dist)
+        """True unless pixels are pinhole pixels (an equidistant lens always distorts, even with k = 0)."""
+        return self.is_fisheye or any(abs(d) > 0 for d in self.dist)
 
     def pinhole(self) -> Camera:
         """The same intrinsics without distortion (the camera of undistorted images)."""
@@ -240,7 +257,10 @@ class Camera:
 
     # ---- normalised plane <-> distorted normalised plane
     def distort(self, xn: np.ndarray) -> np.ndarray:
-        """Apply radial-tangential distortion to normalised coordinates (..., 2)."""
+        """Apply the lens distortion to normalised coordinates (..., 2) (rays ``[x, y, 1]``)."""
+        if self.is_fisheye:
+            r = np.hypot(xn[..., 0], xn[..., 1])
+            return xn * _fisheye_scale(self.dist, r, np.arctan(r))[..., None]
         k1, k2, p1, p2 = self.dist
         x, y = xn[..., 0], xn[..., 1]
         r2 = x * x + y * y
@@ -250,10 +270,14 @@ class Camera:
         return np.stack([xd, yd], -1)
 
     def undistort_normalized(self, xd: np.ndarray, iterations: int = 20) -> np.ndarray:
-        """Invert :meth:`distort` by fixed-point iteration (converges for EuRoC-like lenses)."""
+        """Invert :meth:`distort`: fixed-point iteration for radial-tangential (converges for EuRoC-like lenses),
+        Newton on ``theta`` for equidistant. A fisheye ray at 90 deg or more from the axis has no point on the
+        normalised plane: NaN."""
         xd = np.asarray(xd, dtype=np.float64)
         if not self.has_distortion:
             return xd.copy()
+        if self.is_fisheye:
+            return _fisheye_undistort(self.dist, xd)
         k1, k2, p1, p2 = self.dist
         x = xd.copy()
         for _ in range(iterations):
@@ -277,8 +301,12 @@ class Camera:
         z = p_c[..., 2]
         valid = z > min_depth
         zs = np.where(valid, z, 1.0)
-        xn = p_c[..., :2] / zs[..., None]
-        xd = self.distort(xn) if self.has_distortion else xn
+        if self.is_fisheye:
+            r = np.hypot(p_c[..., 0], p_c[..., 1])
+            xd = p_c[..., :2] * _fisheye_scale(self.dist, r, np.arctan2(r, zs))[..., None]
+        else:
+            xn = p_c[..., :2] / zs[..., None]
+            xd = self.distort(xn) if self.has_distortion else xn
         uv = np.stack([self.fx * xd[..., 0] + self.cx, self.fy * xd[..., 1] + self.cy], -1)
         return uv, valid
 
@@ -325,6 +353,32 @@ class Camera:
         mx, my = _cached_maps(self)
         interp = cv2.INTER_LINEAR if interpolation is None else interpolation
         return cv2.remap(image, mx, my, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+CAMERA_MODELS = ("radtan", "equidistant")
+
+
+def _fisheye_scale(k, r: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """``theta_d / r`` of the equidistant model (``r``: radius of the point or ray, ``theta``: its angle)."""
+    t2 = theta * theta
+    theta_d = theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+    small = r < 1e-12
+    return np.where(small, 1.0, theta_d / np.where(small, 1.0, r))
+
+
+def _fisheye_undistort(k, xd: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Distorted normalised (..., 2) -> normalised; Newton on ``theta(1 + k1 theta^2 + ...) = theta_d``."""
+    theta_d = np.hypot(xd[..., 0], xd[..., 1])
+    theta = np.clip(theta_d, 0.0, np.pi)
+    for _ in range(iterations):
+        t2 = theta * theta
+        f = theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))) - theta_d
+        df = 1.0 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+        theta = theta - f / df
+    small = theta_d < 1e-12
+    scale = np.where(small, 1.0, np.tan(theta) / np.where(small, 1.0, theta_d))
+    scale = np.where((theta >= np.pi / 2) | (theta < 0), np.nan, scale)
+    return xd * scale[..., None]
 
 
 _MAPS: dict[Camera, tuple[np.ndarray, np.ndarray]] = {}

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.backend.imu import ImuStream
 from runtime.geometry import ns_to_s
+from runtime.live import LiveSlam
 from runtime.slam import SlamConfig, SlamSystem
 
 log = logging.getLogger(__name__)
@@ -52,13 +52,13 @@ def run_sequence(
     cfg = cfg or SlamConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    imu = ImuStream.from_sequence(seq, cfg.imu.gap_factor)
     mapper = _make_mapper(seq, dense, model_dir, depth_source, probe) if dense is not None else None
-    system = SlamSystem(seq.camera, seq.T_b_c, imu, seq.imu, cfg, dense=mapper)
+    live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg, dense=mapper)  # the one code path, as live users feed it
+    system = live.system
     recorder = _make_recorder(viz, out, seq)
     n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
     t_start, cpu_start = time.perf_counter(), time.process_time()
-    _run_frames(system, seq, n, recorder, progress)
+    _run_frames(live, seq, n, recorder, progress)
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
     ts, T, pts = _write_trajectory_and_map(system, out)
     metrics = {
@@ -124,8 +124,10 @@ def _make_mapper(seq, dense, model_dir, depth_source, probe):
     return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
-def _run_frames(system: SlamSystem, seq, n: int, recorder, progress: bool) -> None:
-    """Feed the first ``n`` frames (images decoded ahead in a thread) to ``system``."""
+def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool) -> None:
+    """Feed the first ``n`` frames (images decoded ahead in a thread), each after the IMU samples up to its time,
+    to ``live``; then the IMU samples after the last frame."""
+    system, k = live.system, 0
     bar = None
     if progress:
         from tqdm import tqdm
@@ -136,8 +138,10 @@ def _run_frames(system: SlamSystem, seq, n: int, recorder, progress: bool) -> No
         if err is not None:
             system.event(ts, f"frame {i}: cannot read image ({err})")
         system.timers["read"] += t_wait
-        rec = system.process(i, ts, img)
-        if recorder is not None and img is not None:
+        k = _feed_imu(live, seq, k, ts)
+        state = live.add_image(ts, img)
+        rec = state.record if state is not None else None
+        if recorder is not None and img is not None and state is not None:
             recorder.log_frame(system, ts, img, rec)
         if bar is not None:
             bar.update(1)
@@ -145,8 +149,18 @@ def _run_frames(system: SlamSystem, seq, n: int, recorder, progress: bool) -> No
                 bar.set_postfix(
                     kf=len(system.map.history), lm=system.map.n_landmarks, st=rec.status if rec else "init"
                 )
+    _feed_imu(live, seq, k, None)
+    live.flush()
     if bar is not None:
         bar.close()
+
+
+def _feed_imu(live: LiveSlam, seq, k: int, until_ns: int | None) -> int:
+    """Add IMU samples ``k, k+1, ...`` with stamps up to ``until_ns`` (None: all); returns the next index."""
+    end = seq.imu_ts.size if until_ns is None else int(np.searchsorted(seq.imu_ts, until_ns, "right"))
+    for j in range(k, end):
+        live.add_imu(int(seq.imu_ts[j]), seq.gyro[j], seq.accel[j])
+    return max(k, end)
 
 
 def _write_trajectory_and_map(system: SlamSystem, out: Path):

@@ -221,4 +221,5 @@ def perturbed_calibration(
         camera.width,
         camera.height,
         tuple(float(d * (1.0 + e)) for d, e in zip(camera.dist, ed, strict=True)),
+        camera.model,
     )

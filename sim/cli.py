@@ -1,7 +1,7 @@
 """``dit-sim``: render synthetic data in the real formats.
 
     dit-sim euroc out=DIR preset=textured|whitewall|flight|handheld|tabletop duration=SECONDS seed=S
-        [imu_noise=true|false] [realism=true|false] [ideal=true]
+        [imu_noise=true|false] [realism=true|false] [ideal=true] [camera=pinhole|fisheye] [format=asl|bag|ros2|mcap]
     dit-sim nyu out=DIR n_train=N n_val=M seed=S [realism=true]
     dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
 
@@ -28,8 +28,12 @@ def _euroc(cfg: DictConfig) -> str:
     from sim.euroc import write_euroc_sequence
 
     out = cfg.out if cfg.out is not None else f"data/sim/euroc_{cfg.preset}_s{cfg.seed}"
+    fmt = str(cfg.get("format", "asl"))
+    if fmt != "asl":
+        return _euroc_bag(cfg, out, fmt)
     root = write_euroc_sequence(
         out,
+        camera=str(cfg.get("camera", "pinhole")),
         preset=str(cfg.preset),
         duration=float(cfg.duration),
         seed=int(cfg.seed),
@@ -61,6 +65,32 @@ def _euroc(cfg: DictConfig) -> str:
         a, b = info["whitewall_window_s"]
         lines.append(f"  white-wall window: {a:.1f} s .. {b:.1f} s after the first frame")
     return f"dit-sim euroc: wrote {root}\n" + "\n".join(lines)
+
+
+def _euroc_bag(cfg: DictConfig, out: str, fmt: str) -> str:
+    from sim.bag import write_bag_sequence
+
+    bag = write_bag_sequence(
+        out,
+        fmt,
+        camera=str(cfg.get("camera", "pinhole")),
+        preset=str(cfg.preset),
+        duration=float(cfg.duration),
+        seed=int(cfg.seed),
+        imu_noise=bool(cfg.imu_noise),
+        progress=bool(cfg.progress),
+        scale=float(cfg.scale),
+        workers=int(cfg.workers),
+        noise_sigma=float(cfg.image_noise),
+        realism=None if cfg.realism is None else bool(cfg.realism),
+        ideal=bool(cfg.ideal),
+    )
+    info = json.loads((Path(out) / "sim_info.json").read_text())
+    return (
+        f"dit-sim euroc: wrote {bag} ({fmt}): /cam0/image_raw {info['frames']} frames, /imu0 "
+        f"{info['imu_samples']} samples, /ground_truth/pose\n  calibration: {Path(out) / 'calib'} "
+        f"(run: dit-slam sequence={bag} calib={Path(out) / 'calib'})"
+    )
 
 
 def _nyu(cfg: DictConfig) -> str:

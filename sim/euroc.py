@@ -54,6 +54,7 @@ from sim.trajectory import Trajectory, make_trajectory
 
 __all__ = [
     "EUROC_CAM0",
+    "FISHEYE_CAM0",
     "EUROC_T_B_C0",
     "IMU_RATE_HZ",
     "CAM_EVERY",
@@ -75,6 +76,21 @@ GENERATOR = "dit-sim"
 PHYSICS_DT = 1e-3  # [s] step of the camera motion that gives the pixel velocities (motion blur, rolling shutter)
 
 
+#: The fisheye of ``dit-sim euroc camera=fisheye``: EuRoC's 752x480 sensor behind an equidistant lens with TUM-VI's
+#: cam0 coefficients, 143 deg across the width and 85 deg from the axis at the corners.
+FISHEYE_CAM0 = Camera(
+    300.0,
+    300.0,
+    375.5,
+    239.5,
+    752,
+    480,
+    (0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202, 0.00020293673591811182),
+    "equidistant",
+)
+CAMERAS = {"pinhole": EUROC_CAM0, "fisheye": FISHEYE_CAM0}
+
+
 def scaled_camera(scale: float = 1.0, base: Camera = EUROC_CAM0) -> Camera:
     """``base`` resampled by ``scale`` (pixel centres: ``u' = scale (u + 0.5) - 0.5``); 1.0 gives ``base``.
 
@@ -94,6 +110,7 @@ def scaled_camera(scale: float = 1.0, base: Camera = EUROC_CAM0) -> Camera:
         int(round(base.width * scale)),
         int(round(base.height * scale)),
         base.dist,
+        base.model,
     )
 
 
@@ -271,7 +288,7 @@ def _cam_yaml(cam: Camera, T_b_c: np.ndarray, rate: int, depth: bool = False) ->
         f"  data: {_yaml_matrix(T_b_c)}\n\n# Camera specific definitions.\nrate_hz: {rate}\n"
         f"resolution: [{cam.width}, {cam.height}]\ncamera_model: pinhole\n"
         f"intrinsics: [{cam.fx!r}, {cam.fy!r}, {cam.cx!r}, {cam.cy!r}] #fu, fv, cu, cv\n"
-        "distortion_model: radial-tangential\n"
+        f"distortion_model: {'equidistant' if cam.is_fisheye else 'radial-tangential'}\n"
         f"distortion_coefficients: [{', '.join(repr(float(d)) for d in cam.dist)}]\n"
     )
     if depth:
@@ -418,6 +435,7 @@ def write_euroc_sequence(
     noise_sigma: float = 1.0,
     realism: bool | None = None,
     ideal: bool = False,
+    camera: str = "pinhole",
 ) -> Path:
     """Render a sequence and write it in the EuRoC ASL layout (plus ``depth0``).
 
@@ -439,6 +457,7 @@ def write_euroc_sequence(
             samples, turn-on biases, rotor vibration). None: on (every preset is realistic by default;
             ``realism=false`` gives the earlier synthetic data, ``ideal=true`` exact data).
         ideal: exact data for known-answer tests: no physics, exact IMU, zero biases, no image noise.
+        camera: ``pinhole`` (EuRoC's cam0, radial-tangential) or ``fisheye`` (:data:`FISHEYE_CAM0`, equidistant).
 
     Returns:
         ``out`` as a Path (the folder that contains ``mav0``).
@@ -449,7 +468,9 @@ def write_euroc_sequence(
     elif realism is None:
         realism = True
     out = Path(out)
-    cam = scaled_camera(scale)
+    if camera not in CAMERAS:
+        raise ValueError(f"camera={camera!r} is not one of {', '.join(CAMERAS)}")
+    cam = scaled_camera(scale, CAMERAS[camera])
     data = simulate_sequence(preset, duration, int(seed), imu_noise, realism=bool(realism))
     prepare_output(out, ("mav0",))
     mav0 = out / "mav0"
@@ -511,6 +532,7 @@ def write_euroc_sequence(
         "scale": float(scale),
         "noise_sigma": float(noise_sigma),
         "resolution": [cam.width, cam.height],
+        **({"camera": camera} if camera != "pinhole" else {}),
         "frames": int(len(frame_ts)),
         "imu_samples": int(len(data.ts)),
         "t0_ns": int(data.ts[0]),

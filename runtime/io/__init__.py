@@ -1,9 +1,12 @@
-"""Readers and writers of the real data formats (EuRoC ASL, TUM trajectories, PLY, NYU Depth v2).
+"""Readers and writers of the real data formats (EuRoC ASL, ROS bags, Kalibr calibration, TUM trajectories, PLY,
+NYU Depth v2); :func:`open_sequence` opens an ASL folder or a bag.
 
 Quaternion orders are converted here and nowhere else: EuRoC CSVs are ``(w, x, y, z)``, TUM files
 ``(x, y, z, w)``; everything returned uses the conventions of :mod:`runtime.geometry`.
 """
 
+from runtime.io.bag import BagFormatError, BagSequence, BagTopics, read_bag
+from runtime.io.calib import Calibration, read_calibration, read_kalibr
 from runtime.io.euroc import (
     DEPTH_SCALE,
     GT_COLUMNS,
@@ -22,9 +25,19 @@ from runtime.io.euroc import (
 )
 from runtime.io.nyu import NYU_HW, NyuFormatError, NyuLabeledMat, list_nyu_h5, read_nyu_h5, read_nyu_split
 from runtime.io.ply import PlyFormatError, read_ply, write_ply
+from runtime.io.sequence import PinholeView, open_sequence
 from runtime.io.tum import TumFormatError, read_tum, write_tum
 
 __all__ = [
+    "BagFormatError",
+    "BagSequence",
+    "BagTopics",
+    "read_bag",
+    "Calibration",
+    "read_calibration",
+    "read_kalibr",
+    "PinholeView",
+    "open_sequence",
     "DEPTH_SCALE",
     "GT_COLUMNS",
     "IMU_COLUMNS",

@@ -132,9 +132,10 @@ def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
     if model != "pinhole":
         raise EurocFormatError(f"{path}: camera_model '{model}' is not supported (only 'pinhole')")
     dmodel = str(d.get("distortion_model", "radial-tangential")).lower()
-    if dmodel not in ("radial-tangential", "radtan", "plumb_bob", "none"):
+    if dmodel not in ("radial-tangential", "radtan", "plumb_bob", "none", "equidistant"):
         raise EurocFormatError(
-            f"{path}: distortion_model '{dmodel}' is not supported (only radial-tangential k1, k2, p1, p2)"
+            f"{path}: distortion_model '{dmodel}' is not supported "
+            "(radial-tangential k1, k2, p1, p2 or equidistant k1, k2, k3, k4)"
         )
     fx, fy, cx, cy = _float_list(d, "intrinsics", 4, path)
     if fx <= 0 or fy <= 0:
@@ -142,7 +143,7 @@ def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
     if dmodel == "none" and "distortion_coefficients" not in d:
         dist = [0.0, 0.0, 0.0, 0.0]
     else:
-        dist = _float_list(d, "distortion_coefficients", (4, 5), path)
+        dist = _float_list(d, "distortion_coefficients", 4 if dmodel == "equidistant" else (4, 5), path)
         if len(dist) == 5:  # plumb_bob k1, k2, p1, p2, k3: only k3 = 0 is representable
             if dist[4] != 0.0:
                 raise EurocFormatError(f"{path}: distortion_coefficients k3={dist[4]} is not supported (must be 0)")
@@ -154,7 +155,8 @@ def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
     if rate <= 0:
         raise EurocFormatError(f"{path}: rate_hz must be positive, got {rate}")
     T_b_c = _matrix4(d, "T_BS", path)
-    cam = Camera(fx, fy, cx, cy, int(w), int(h), (dist[0], dist[1], dist[2], dist[3]))
+    model = "equidistant" if dmodel == "equidistant" else "radtan"
+    cam = Camera(fx, fy, cx, cy, int(w), int(h), (dist[0], dist[1], dist[2], dist[3]), model)
     return cam, T_b_c, rate
 
 

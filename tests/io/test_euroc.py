@@ -398,7 +398,7 @@ def test_depth_png_of_wrong_type(euroc):
             "missing key 'intrinsics'",
         ),
         (lambda s: s.replace("[458.654, 457.296, 367.215, 248.375]", "[458.654, 457.296]"), "'intrinsics'"),
-        (lambda s: s.replace("radial-tangential", "equidistant"), "equidistant"),
+        (lambda s: s.replace("radial-tangential", "kannala-brandt"), "kannala-brandt"),
         (lambda s: s.replace("rows: 4", "rows: 3"), "4x4"),
         (lambda s: s.replace("0.0148655429818", "0.5"), "not a rotation"),
         (lambda s: s + "  bad: [\n", "invalid YAML"),

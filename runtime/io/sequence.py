@@ -1,0 +1,96 @@
+"""Open whatever a user has as one sequence: an EuRoC ASL folder or a ROS bag, with an optional calibration
+folder, and fisheye lenses seen through a pinhole view.
+
+``open_sequence`` returns an object with the attributes of :class:`runtime.io.euroc.EurocSequence` that the
+runtime reads (``camera``, ``T_b_c``, ``cam_rate_hz``, ``frame_ts``, ``image(i)``, ``imu_ts``, ``gyro``,
+``accel``, ``imu``, ``gt``, ``has_depth``, ``depth(i)``, ``root``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from runtime.geometry import Camera
+from runtime.io.bag import BagTopics, is_bag, read_bag
+from runtime.io.calib import read_calibration
+from runtime.io.euroc import read_euroc
+
+log = logging.getLogger(__name__)
+
+__all__ = ["open_sequence", "PinholeView"]
+
+
+class PinholeView:
+    """A fisheye sequence seen through the pinhole camera with the same ``K`` (images resampled with
+    :meth:`runtime.geometry.Camera.undistort_image`; rays beyond the fisheye's image are black).
+
+    The tracking front end and the network take pinhole (or radial-tangential) images; an equidistant lens is
+    undistorted once per frame here. Every other attribute is the wrapped sequence's.
+    """
+
+    def __init__(self, seq):
+        if not seq.camera.is_fisheye:
+            raise ValueError(f"PinholeView is for fisheye cameras, got model {seq.camera.model!r}")
+        self.seq = seq
+        self.fisheye: Camera = seq.camera
+        self.camera: Camera = seq.camera.pinhole()
+
+    def __getattr__(self, name):
+        return getattr(self.seq, name)
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __repr__(self) -> str:
+        return f"PinholeView({self.seq!r})"
+
+    def image(self, i: int) -> np.ndarray:
+        return self.fisheye.undistort_image(self.seq.image(i))
+
+    def depth(self, i: int) -> np.ndarray | None:
+        d = self.seq.depth(i)
+        return None if d is None else self.fisheye.undistort_image(d, interpolation=cv2.INTER_NEAREST)
+
+
+def open_sequence(
+    path: str | Path,
+    calib: str | Path | None = None,
+    topics: BagTopics | None = None,
+    pinhole_view: bool = True,
+):
+    """Open an ASL folder (``mav0`` inside) or a bag (``.bag`` file, ROS2 folder, ``.db3`` / ``.mcap``).
+
+    Args:
+        path: the sequence.
+        calib: calibration folder (EuRoC ``sensor.yaml`` files or Kalibr's ``camchain.yaml`` + ``imu.yaml``);
+            needed for a bag, and replaces an ASL folder's own ``sensor.yaml`` calibration when given.
+        topics: the bag's topics (default: EuRoC's names, or the calibration's Kalibr ``rostopic``).
+        pinhole_view: wrap a fisheye sequence in :class:`PinholeView` (what the SLAM system runs on).
+
+    Raises:
+        ValueError: a bag without ``calib``; the readers' format errors (naming file, key or topic).
+    """
+    path = Path(path).expanduser()
+    if is_bag(path):
+        if calib is None:
+            raise ValueError(f"{path}: a bag carries no calibration; give calib=DIR (EuRoC sensor.yaml or Kalibr)")
+        seq = read_bag(path, calib, topics)
+    else:
+        seq = read_euroc(path)
+        if calib is not None:
+            cal = read_calibration(calib)
+            seq = dataclasses.replace(
+                seq, camera=cal.camera, T_b_c=cal.T_b_c, imu=cal.imu, cam_rate_hz=cal.cam_rate_hz or seq.cam_rate_hz
+            )
+            if cal.time_shift_ns:
+                seq.frame_ts = seq.frame_ts + np.int64(cal.time_shift_ns)
+            log.info("calibration from %s", cal.source)
+    if pinhole_view and seq.camera.is_fisheye:
+        log.info("fisheye camera: running on its pinhole view (same K)")
+        return PinholeView(seq)
+    return seq

@@ -2,7 +2,8 @@
 for byte.
 
 Every preset is realistic by default; the earlier synthetic data stay available (``realism=false``), and
-runtime changes are also judged by ATE on them, so they must stay what they were. The hashes below were computed with the code of commit 37c3c9b.
+runtime changes are also judged by ATE on them, so they must stay what they were. The hashes below were
+computed with the code of commit 37c3c9b.
 """
 
 from __future__ import annotations

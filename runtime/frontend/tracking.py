@@ -11,7 +11,8 @@ against chi2(2 dof); the epipolar distance between consecutive frames holds two 
 excerpt: the epipolar distance of the tracks under the ground-truth relative pose has a robust (MAD) sigma of
 0.12 px but a 99th percentile of 0.91 px, a tail far heavier than a Gaussian's; the stated sigma (0.25 px) is
 the one whose 99 % bound (3.64 sigma) is that percentile, so that the test keeps 99 % of real tracks. KLT is
-photometric: with ``normalize`` it runs on images brought to zero mean and unit spread (gain and bias compensation), so that an exposure change between frames does not break it.
+photometric: with ``normalize`` it runs on images brought to zero mean and unit spread (gain and bias
+compensation), so that an exposure change between frames does not break it.
 """
 
 from __future__ import annotations

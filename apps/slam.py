@@ -69,7 +69,13 @@ def _sequence(cfg):
         s = cfg.sim
         try:
             root = cached_sequence(
-                str(s.preset), float(s.duration), int(s.seed), bool(s.imu_noise), s.cache_dir, bool(cfg.progress)
+                str(s.preset),
+                float(s.duration),
+                int(s.seed),
+                bool(s.imu_noise),
+                s.cache_dir,
+                bool(cfg.progress),
+                realism=bool(s.get("realism", True)),
             )
         except (ValueError, RuntimeError, FileExistsError) as e:
             raise UsageError(f"cannot render the default sequence: {e}") from e

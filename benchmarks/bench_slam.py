@@ -1,11 +1,17 @@
-"""Benchmark of the sparse VI-SLAM on synthetic EuRoC-layout sequences: ATE, RPE, FPS, time per stage.
+"""Benchmark of the sparse VI-SLAM: ATE, frames with a pose, time to initialise, losses, FPS, time per stage.
 
-    python benchmarks/bench_slam.py                      # textured + whitewall, 60 s, IMU noise, seeds 0 1 2
+    python benchmarks/bench_slam.py                      # realistic textured, whitewall, flight, handheld (30 s,
+                                                         # seeds 0 1 2) and the MH_05 excerpt (real timing and
+                                                         # with a 2 s still period prepended)
+    python benchmarks/bench_slam.py --presets textured --synthetic --seeds 0 --duration 20   # earlier data
     python benchmarks/bench_slam.py --seeds 0 --duration 20 --set backend.window_size=8
     python benchmarks/bench_slam.py --detectors          # gftt vs fast vs orb: detection time, track life,
     ATE
 
-Sequences are rendered with ``sim`` into ``--data`` once (reused afterwards). Every run is a fresh system in
+Sequences are rendered with ``sim`` into ``--data`` once (reused afterwards); the MH_05 excerpt of
+``../shared/data`` (real images, no IMU) is completed with ``dit-sim imu`` (vibration on) into ``--data``, once
+with real timing (it starts in flight: in-motion initialisation) and once with ``still=2``. Skipped with a note
+when the excerpt is absent. Every run is a fresh system in
 this process, one after another; FPS is frames / wall time of the whole run (image decoding included). The
 machine is shared and noisy: compare ratios measured in one invocation. Prints a table and writes JSON.
 """
@@ -94,19 +100,60 @@ def run_one(root: Path, cfg: SlamConfig, out: Path) -> dict:
 
 def fmt_table(rows: list[dict]) -> str:
     head = (
-        f"{'preset':10s} {'seed':>4s} {'ATE SE3 m':>10s} {'ATE Sim3 m':>10s} {'RPE m/1s':>9s} "
-        f"{'RPE deg/1s':>10s} "
-        f"{'FPS':>6s} {'ms/frame':>8s} {'KF':>4s}"
+        f"{'sequence':14s} {'seed':>4s} {'ATE SE3 m':>10s} {'ATE Sim3 m':>10s} {'% path':>7s} {'posed':>6s} "
+        f"{'init':>12s} {'losses':>6s} {'RPE m/1s':>9s} {'FPS':>6s} {'CPU ms':>6s} {'KF':>4s}"
     )
     lines = [head, "-" * len(head)]
+    nan = float("nan")
     for r in rows:
+        pct = 100 * r.get("ate_se3_rmse_m", nan) / r["path_length_m"] if r.get("path_length_m") else nan
+        init = f"{r['init_method'] or '-'}@{r['init_after_s']:.1f}s" if r.get("init_after_s") is not None else "never"
         lines.append(
-            f"{r['preset']:10s} {r['seed']:>4d} {r.get('ate_se3_rmse_m', float('nan')):10.4f} "
-            f"{r.get('ate_sim3_rmse_m', float('nan')):10.4f} {r.get('rpe_trans_rmse_m', float('nan')):9.4f} "
-            f"{r.get('rpe_rot_rmse_deg', float('nan')):10.3f} {r['fps']:6.1f} {1e3 / r['fps']:8.1f} "
-            f"{r['keyframes']:4d}"
+            f"{r['preset']:14s} {r['seed']:>4d} {r.get('ate_se3_rmse_m', nan):10.4f} "
+            f"{r.get('ate_sim3_rmse_m', nan):10.4f} {pct:7.2f} {100 * r['posed_frac']:5.1f}% {init:>12s} "
+            f"{r['tracking_losses']:6d} {r.get('rpe_trans_rmse_m', nan):9.4f} {r['fps']:6.1f} "
+            f"{r['cpu_ms_per_frame']:6.1f} {r['keyframes']:4d}"
         )
     return "\n".join(lines)
+
+
+def mh05_jobs(args) -> list[tuple[str, float]]:
+    """(name, still seconds) of the MH_05 runs asked for, or none (with a note) without the excerpt."""
+    if not args.mh05_runs:
+        return []
+    if not (Path(args.mh05) / "mav0" / "cam0").is_dir():
+        print(f"MH_05 excerpt not found at {args.mh05}: its rows are skipped")
+        return []
+    return [("mh05" if r == "real" else "mh05_still2", 0.0 if r == "real" else 2.0) for r in args.mh05_runs]
+
+
+def mh05_sequence(source: Path, data: Path, still: float) -> Path:
+    """The MH_05 excerpt completed with a vibrating IMU (``dit-sim imu``), cached in ``data``."""
+    from sim.complete import complete_imu
+
+    out = data / f"euroc_mh05_imu_still{still:g}"
+    if not (out / "mav0" / "imu0" / "data.csv").is_file():
+        print(f"completing {source} with an IMU (still={still:g}) into {out}")
+        complete_imu(source, out, still=still)
+    return out
+
+
+def result_row(m: dict) -> dict:
+    """The benchmark's columns from a run's metrics."""
+    keys = ("frames", "frames_with_pose", "keyframes", "fps", "cpu_ms_per_frame", "timing_ms_per_frame", "n_events")
+    row = {k: m[k] for k in keys}
+    for k in ("ate_se3_rmse_m", "ate_sim3_rmse_m", "sim3_scale", "rpe_trans_rmse_m", "rpe_rot_rmse_deg"):
+        if k in m:
+            row[k] = m[k]
+    row["path_length_m"] = m.get("path_length_m")
+    row["error"] = m.get("error")
+    init = m.get("initialisation") or {}
+    row["init_method"] = init.get("method")
+    row["init_after_s"] = init.get("after_s")
+    row["posed_frac"] = m["frames_with_pose"] / max(m["frames"], 1)
+    row["tracking_losses"] = sum("visual tracking lost" in e[1] for e in m.get("events", []))
+    row["restarts"] = len(m.get("restarts", []))
+    return row
 
 
 def fmt_stages(rows: list[dict]) -> str:
@@ -128,6 +175,11 @@ def summary(rows: list[dict]) -> dict:
             "runs": len(rs),
             "ate_se3_rmse_m_mean": float(np.nanmean(ate)),
             "ate_se3_rmse_m_max": float(np.nanmax(ate)),
+            "ate_pct_path_max": float(
+                np.nanmax([100 * r.get("ate_se3_rmse_m", np.nan) / r.get("path_length_m", np.nan) for r in rs])
+            ),
+            "posed_frac_min": float(np.min([r["posed_frac"] for r in rs])),
+            "tracking_losses_total": int(sum(r["tracking_losses"] for r in rs)),
             "rpe_trans_rmse_m_mean": float(np.nanmean([r.get("rpe_trans_rmse_m", np.nan) for r in rs])),
             "rpe_rot_rmse_deg_mean": float(np.nanmean([r.get("rpe_rot_rmse_deg", np.nan) for r in rs])),
             "fps_mean": float(np.mean([r["fps"] for r in rs])),
@@ -202,9 +254,12 @@ def detector_study(args) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--presets", nargs="+", default=["textured", "whitewall"])
+    ap.add_argument("--presets", nargs="*", default=["textured", "whitewall", "flight", "handheld"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--synthetic", action="store_true", help="the earlier synthetic data (realism=false)")
+    ap.add_argument("--mh05", default=str(REPO.parent / "shared" / "data" / "euroc_MH_05_excerpt"))
+    ap.add_argument("--mh05-runs", nargs="*", default=["real", "still"], help="real timing and/or still=2")
     ap.add_argument("--no-imu-noise", action="store_true", help="exact IMU (default: noise on)")
     ap.add_argument("--runtime", default="default", help="conf/slam/runtime/<name>.yaml preset")
     ap.add_argument("--set", nargs="*", default=[], help="overrides key=value of the runtime config")
@@ -219,51 +274,30 @@ def main(argv: list[str] | None = None) -> int:
     machine = slam_machine(loadavg_start=os.getloadavg() if hasattr(os, "getloadavg") else None)
     if args.detectors:
         res = detector_study(args)
-        (out / "bench_detectors.json").write_text(
-            json.dumps({"machine": machine, "detectors": res}, indent=2)
-        )
+        (out / "bench_detectors.json").write_text(json.dumps({"machine": machine, "detectors": res}, indent=2))
         print(f"wrote {out / 'bench_detectors.json'}")
         return 0
     rows = []
-    for preset in args.presets:
-        for seed in args.seeds:
+    jobs = [(p, seed, None) for p in args.presets for seed in args.seeds]
+    jobs += [(name, 0, still) for name, still in mh05_jobs(args)]
+    for preset, seed, still in jobs:
+        if preset.startswith("mh05"):
+            root = mh05_sequence(Path(args.mh05), Path(args.data), still)
+        else:
             root = default_sequence(
-                preset, args.duration, seed, not args.no_imu_noise, args.data, progress=True
+                preset, args.duration, seed, not args.no_imu_noise, args.data, progress=True, realism=not args.synthetic
             )
-            cfg = make_config(args.runtime, args.set)
-            t0 = time.perf_counter()
-            m = run_one(root, cfg, out / f"{preset}_s{seed}")
-            row = {"preset": preset, "seed": seed, "sequence": str(root), "wall_s": time.perf_counter() - t0}
-            row.update(
-                {
-                    k: m[k]
-                    for k in (
-                        "frames",
-                        "frames_with_pose",
-                        "keyframes",
-                        "fps",
-                        "timing_ms_per_frame",
-                        "n_events",
-                    )
-                }
-            )
-            for k in (
-                "ate_se3_rmse_m",
-                "ate_sim3_rmse_m",
-                "sim3_scale",
-                "rpe_trans_rmse_m",
-                "rpe_rot_rmse_deg",
-                "path_length_m",
-                "error",
-            ):
-                if k in m:
-                    row[k] = m[k]
-            rows.append(row)
-            print(
-                f"{preset} seed {seed}: ATE {row.get('ate_se3_rmse_m', float('nan')):.4f} m, "
-                f"{row['fps']:.1f} FPS",
-                flush=True,
-            )
+        cfg = make_config(args.runtime, args.set)
+        t0 = time.perf_counter()
+        m = run_one(root, cfg, out / f"{preset}_s{seed}")
+        row = {"preset": preset, "seed": seed, "sequence": str(root), "wall_s": time.perf_counter() - t0}
+        row.update(result_row(m))
+        rows.append(row)
+        print(
+            f"{preset} seed {seed}: ATE {row.get('ate_se3_rmse_m', float('nan')):.4f} m, "
+            f"{100 * row['posed_frac']:.1f}% posed, {row['fps']:.1f} FPS",
+            flush=True,
+        )
     machine["loadavg_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
     print()
     print(fmt_table(rows))
@@ -280,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else sys.argv[1:])]),
         "machine": machine,
         "duration_s": args.duration,
+        "realism": not args.synthetic,
         "imu_noise": not args.no_imu_noise,
         "runtime": args.runtime,
         "overrides": args.set,

@@ -75,9 +75,11 @@ def run_sequence(
         "keyframe_reasons": dict(system.kf_reasons),
         "map_points_refound": system.n_map_matches,
         "initialised_at_s": (ns_to_s(ts[0]) if len(ts) else None),
+        "initialisation": system.init_info,  # method, when, and the figures of the solve
         "events": system.events[:200],
         "n_events": len(system.events),
         "relocalisations": system.relocalisations,
+        "restarts": system.restarts,
         "config": _jsonable(asdict(cfg)),
     }
     if mapper is not None:
@@ -91,7 +93,7 @@ def run_sequence(
             "outputs_s": time.perf_counter() - t0,
         }
     if len(ts) == 0:
-        metrics["error"] = "never initialised (no still period found; see events)"
+        metrics["error"] = f"never initialised ({system.initializer.last_reason or 'no rest and no motion found'})"
         log.error("never initialised: no trajectory; see the events in metrics.json")
     metrics.update(_evaluate(seq, ts, T, out, plot))
     if recorder is not None:

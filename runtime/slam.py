@@ -27,7 +27,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections import defaultdict, deque
+from collections import defaultdict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,8 +49,10 @@ from runtime.frontend.keyframes import KeyframeConfig, KeyframeSelector, rotatio
 from runtime.frontend.tracking import FeatureTracker, FrameFeatures, TrackerConfig
 from runtime.frontend.triangulation import TriangulationConfig, triangulate
 from runtime.geometry import inv_T, ns_to_s, s_to_ns, to_pose3
-from runtime.init import InitConfig, StaticInitializer
+from runtime.init import DynamicInitConfig, InitConfig, imu_rest_stats
+from runtime.init.runner import InitRunner, Snapshot, StartState
 from runtime.reloc import Relocalizer, RelocConfig
+from runtime.start import adapt_imu_noise, backfill_records, seed_window, try_restart
 from runtime.trajectory import FrameRecord, fill_trajectory
 
 log = logging.getLogger(__name__)
@@ -65,6 +67,7 @@ class SlamConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     init: InitConfig = field(default_factory=InitConfig)
+    dynamic_init: DynamicInitConfig = field(default_factory=DynamicInitConfig)
     imu: ImuNoiseConfig = field(default_factory=ImuNoiseConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     reloc: RelocConfig = field(default_factory=RelocConfig)
@@ -76,9 +79,9 @@ class SlamConfig:
     max_track_views: int = 8  # keyframe observations used to triangulate a track
     still_disp_px: float = 0.6  # median track displacement since the last keyframe below this (+ quiet IMU) = still
     still_min_common_tracks: int = 15  # fewer tracks shared with the last keyframe: no image evidence of rest
-    still_window_s: float = 0.1  # s of IMU samples for the rest test
-    still_gyro_rad_s: float = 0.01  # |gyro - bias| bound for rest
-    still_accel_m_s2: float = 0.1  # | |f| - g | and std bound for rest
+    still_window_s: float = 0.25  # s of IMU samples for the rest test (several of init.block_s)
+    still_gyro_rad_s: float = 0.02  # |mean gyro - bias| bound for rest
+    still_accel_m_s2: float = 0.3  # | |mean f| - g | and block-mean spread bound for rest
     lost_min_landmarks: int = 6  # fewer tracked landmarks: visual tracking lost, coasting on the IMU
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
@@ -128,11 +131,16 @@ class SlamSystem:
         self.T_c_b = inv_T(self.T_b_c)
         self.K = camera.pinhole().K
         self.imu = imu
+        self.imu_params = imu_params
         self.pim_params = preintegration_params(imu_params, cfg.imu)
+        self.noise_scales = (cfg.imu.noise_scale, cfg.imu.noise_scale)
         self.backend = SlidingWindowBackend(camera.intrinsics, self.T_b_c, self.pim_params, cfg.backend)
         self.tracker = tracker or FeatureTracker(camera, self.T_b_c, cfg.features, cfg.tracker)
         self.selector = KeyframeSelector(cfg.keyframes)
-        self.initializer = StaticInitializer(cfg.init, cfg.imu.gravity)
+        self.initializer = InitRunner(cfg.init, cfg.dynamic_init, imu, self.T_b_c, camera.fx, cfg.imu.gravity)
+        self.init_info: dict | None = None  # how and when the system initialised (metrics.json)
+        self.restarts: list[dict] = []  # re-initialisations in the same map frame (metrics.json)
+        self.t_first: int | None = None  # first frame with IMU
         self.reloc = Relocalizer(cfg.reloc, camera, self.T_b_c, self.backend, self.tracker)
         self._gtsam = gtsam
         self.timers: dict[str, float] = defaultdict(float)
@@ -164,11 +172,11 @@ class SlamSystem:
         self.v_cur: np.ndarray | None = None
         self.track_obs: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # track -> kf -> (xn, uv_u)
         self.last_kf_feats: FrameFeatures | None = None
-        self.flow_hist: deque = deque()
         self.still_since_kf = True
         self.lost = False
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
+        self.restart_until: int | None = None  # ns: try an in-motion re-initialisation until then
         self.initializer.reset()
 
     def event(self, ts: int, msg: str, level: int = logging.WARNING) -> None:
@@ -196,6 +204,8 @@ class SlamSystem:
         """
         self.n_frames += 1
         t0 = self._tic()
+        if self.t_first is None and ts >= self.imu.t_start:
+            self.t_first = ts
         seg = self._imu_since_last_frame(frame_idx, ts)
         if seg is None:
             return None
@@ -227,6 +237,10 @@ class SlamSystem:
         T_cur, feats, n_lm = self._refine(T_pred, feats)
         self.T_cur, self.v_cur = T_cur, v_pred
         self._update_lost(ts, n_lm)
+        if try_restart(self, frame_idx, ts, image, feats):
+            self._toc("init", t0)
+            last = self.records[-1] if self.records else None
+            return last if last is not None and last.ts == ts else self._record(frame_idx, ts, False, "reinit")
         t0 = self._toc("refine", t0)
         is_kf, why, still = self._decide_keyframe(ts, feats, T_cur, kf, n_lm, gap)
         t0 = self._toc("keyframe", t0)
@@ -268,11 +282,6 @@ class SlamSystem:
             self.event(ts, f"frame {frame_idx}: image rejected ({e})")
             return None, None
         self.img_ts = ts
-        if not self.initialized:  # snapshots of the tracks for the stillness test of the initialiser
-            self.flow_hist.append((ts, feats.ids, feats.uv))
-            keep_from = ts - s_to_ns(1.5 * self.cfg.init.still_duration_s)
-            while self.flow_hist and self.flow_hist[0][0] < keep_from:
-                self.flow_hist.popleft()
         return feats, image
 
     def _refine(self, T_pred: np.ndarray, feats: FrameFeatures):
@@ -349,50 +358,54 @@ class SlamSystem:
 
     def _still(self, ts: int, disp_px: float | None, kf: Keyframe) -> bool:
         """At rest: the tracks have not moved since the last keyframe (median ``disp_px``; None without enough
-        common tracks: without image evidence constant-velocity motion would look still) and the IMU is quiet."""
+        common tracks: without image evidence constant-velocity motion would look still) and the IMU's
+        low-frequency content is quiet (the rule of :mod:`runtime.init.static`, robust to vibration)."""
         c = self.cfg
         if disp_px is None or disp_px > c.still_disp_px:
             return False
-        _, g, a = self.imu.window(ts - s_to_ns(c.still_window_s), ts)
-        if g.shape[0] < 2:
+        its, g, a = self.imu.window(ts - s_to_ns(c.still_window_s), ts)
+        try:
+            st = imu_rest_stats(its, g, a, c.init.block_s, c.imu.gravity)
+        except ValueError:  # too few samples
             return False
-        g_dev = np.linalg.norm(g.mean(0) - kf.bias[3:])
-        a_std = float(np.max(np.std(a, axis=0)))
-        a_err = abs(float(np.linalg.norm(a.mean(0))) - c.imu.gravity)
-        return g_dev < c.still_gyro_rad_s and a_std < c.still_accel_m_s2 and a_err < c.still_accel_m_s2
+        g_dev = float(np.linalg.norm(g.mean(0) - kf.bias[3:]))
+        return g_dev < c.still_gyro_rad_s and st.accel_std < c.still_accel_m_s2 and st.gravity_err < c.still_accel_m_s2
 
     def _try_initialize(self, frame_idx: int, ts: int, image, feats) -> FrameRecord | None:
         c = self.cfg
-        if image is not None and self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:
-            feats = self.tracker.replenish(ts, image)
-        w0 = ts - s_to_ns(c.init.still_duration_s)
-        its, ig, ia = self.imu.window(w0, ts)
-        flow = None  # median net displacement of the tracks over the window [px]
-        snaps = [s for s in self.flow_hist if s[0] >= w0]
-        if snaps and feats is not None:
-            _, i0, i1 = np.intersect1d(snaps[0][1], feats.ids, assume_unique=True, return_indices=True)
-            if i0.size >= 10:
-                flow = float(np.median(np.linalg.norm(snaps[0][2][i0] - feats.uv[i1], axis=1)))
-        res = self.initializer.check(ts, its, ig, ia, flow)
-        if res is None or feats is None:
+        if image is None or feats is None:
             return None
-        kf = Keyframe(self._kf_id(), ts, frame_idx, res.T_w_b, res.v_w, res.bias, still=True)
-        self.backend.initialize(kf)
+        if self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:
+            feats = self.tracker.replenish(ts, image)
+        keep_image = image if self.dense is not None else None
+        self.initializer.add(Snapshot(frame_idx, ts, feats, keep_image), keep_since=self.t_first)
+        st = self.initializer.step(ts)
+        if st is None:
+            return None
+        return self._start(st, frame_idx, ts, feats)
+
+    def _start(self, st: StartState, frame_idx: int, ts: int, feats) -> FrameRecord:
+        """Hand the initial states to the window and give the frames before initialisation their poses."""
+        t0 = st.frames[0][0].ts if st.frames else st.keyframes[0][0].ts
+        scales = adapt_imu_noise(self, t0, ts)
+        if scales is not None:
+            self.noise_scales = scales
+        kf_ids = seed_window(self, st)
         self.initialized = True
         self.lost = False
-        self.pim = self._new_pim(kf.bias)
-        self.T_cur, self.v_cur = kf.T_w_b.copy(), kf.v_w.copy()
-        self._register_kf_observations(kf.kf_id, feats)
         self.last_kf_feats = feats
-        self.still_since_kf = True
-        self.event(
-            ts,
-            f"initialised (static): gyro bias {np.round(res.bias[3:], 4).tolist()} rad/s, roll/pitch from "
-            f"gravity, gyro std {res.gyro_std:.4f} rad/s, accel std {res.accel_std:.3f} m/s^2",
-            logging.INFO,
-        )
-        self.kf_reasons["init"] += 1
-        return self._record(frame_idx, ts, True, "still")
+        backfill_records(self, st, kf_ids)
+        t_after = ns_to_s(ts - self.t_first) if self.t_first is not None else 0.0
+        self.init_info = {
+            "method": st.method,
+            "t_s": round(ns_to_s(ts), 4),
+            "after_s": round(t_after, 3),
+            "imu_noise_scales": [round(x, 2) for x in self.noise_scales],
+            **st.info,
+        }
+        self.restart_until = ts + s_to_ns(self.cfg.dynamic_init.refine_within_s) if st.method == "hover" else None
+        self.event(ts, f"initialised ({st.method}) {t_after:.2f} s after the first frame: {st.info}", logging.INFO)
+        return self.records[-1]
 
     def _kf_id(self) -> int:
         k = self.next_kf_id
@@ -429,12 +442,18 @@ class SlamSystem:
                 mask[i, v] = True
         tcfg = base = self.cfg.triangulation
         if self.lost:  # dead-reckoned keyframe poses are off: accept rougher points, the window refines them
+            f = self.cfg.lost_reproj_factor
             tcfg = dataclasses.replace(
-                tcfg, max_reproj_px=tcfg.max_reproj_px * self.cfg.lost_reproj_factor, min_views=max(tcfg.min_views, 3)
+                tcfg,
+                pixel_sigma=tcfg.pixel_sigma * f,
+                max_reproj_px=tcfg.max_reproj_px * f,
+                min_views=max(tcfg.min_views, 3),
             )
         X_w, ok, diag = triangulate(T, xn, mask, focal=self.camera.fx, cfg=tcfg)
         # tracks with enough parallax that still do not fit are bad tracks: stop following them
-        bad = (~ok) & (diag["parallax_deg"] > 2 * base.min_parallax_deg) & (diag["max_err_px"] > 2 * base.max_reproj_px)
+        bad = (
+            (~ok) & (diag["parallax_deg"] > 2 * base.min_parallax_deg) & (diag["max_err_px"] > 2 * base.reproj_bound_px)
+        )
         if bad.any():
             bad_ids = np.array(cand, dtype=np.int64)[bad]
             self.tracker.drop(bad_ids)

@@ -454,8 +454,8 @@ def write_euroc_sequence(
         realism: real sensors: camera physics (:mod:`sim.camera`: exposure, motion blur, auto-exposure with
             sudden light changes, shot / read noise, gamma, vignetting, rolling shutter on hand-held presets, a
             camera-IMU time offset, a calibration error in ``cam0/sensor.yaml``) and a real IMU (instantaneous
-            samples, turn-on biases, rotor vibration). None: on for ``flight``, ``handheld``, ``tabletop``, off
-            for ``textured`` and ``whitewall`` (whose default data stay as they were).
+            samples, turn-on biases, rotor vibration). None: on (every preset is realistic by default;
+            ``realism=false`` gives the earlier synthetic data, ``ideal=true`` exact data).
         ideal: exact data for known-answer tests: no physics, exact IMU, zero biases, no image noise.
         camera: ``pinhole`` (EuRoC's cam0, radial-tangential) or ``fisheye`` (:data:`FISHEYE_CAM0`, equidistant).
 
@@ -466,7 +466,7 @@ def write_euroc_sequence(
     if ideal:
         realism, imu_noise, noise_sigma = False, False, 0.0
     elif realism is None:
-        realism = preset in ROOM_PRESETS
+        realism = True
     out = Path(out)
     if camera not in CAMERAS:
         raise ValueError(f"camera={camera!r} is not one of {', '.join(CAMERAS)}")

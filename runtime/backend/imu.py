@@ -21,7 +21,6 @@ from runtime.geometry import GRAVITY, GRAVITY_W, ns_to_s, so3_exp
 log = logging.getLogger(__name__)
 
 
-
 @dataclass
 class ImuNoiseConfig:
     """Multipliers applied to the sensor.yaml densities (1.0 = as calibrated).
@@ -30,20 +29,23 @@ class ImuNoiseConfig:
     the simulator is exact, so 1.0 is right there.
     """
 
-    noise_scale: float = 1.0  # white-noise densities (gyro, accel)
+    noise_scale: float = 1.0  # white-noise densities (gyro, accel); the floor when adapt_noise is on
     walk_scale: float = 1.0  # bias random walks
     integration_sigma: float = 1e-4  # [m/s^2 * sqrt(s)... ] position integration noise (GTSAM's integrationCovariance)
     gravity: float = GRAVITY
     gap_factor: float = 4.0  # an interval longer than gap_factor / rate is logged as a gap
+    adapt_noise: bool = True  # raise the white-noise densities to the level measured at initialisation
+    max_noise_scale: float = 30.0  # bound on that raise
 
 
-def preintegration_params(imu, cfg: ImuNoiseConfig | None = None):
+def preintegration_params(imu, cfg: ImuNoiseConfig | None = None, scales: tuple[float, float] | None = None):
     """``gtsam.PreintegrationCombinedParams`` from the io ``ImuParams`` (continuous-time densities).
 
     Args:
         imu: object with ``gyro_noise_density`` [rad/s/sqrt(Hz)], ``gyro_random_walk`` [rad/s^2/sqrt(Hz)],
             ``accel_noise_density`` [m/s^2/sqrt(Hz)], ``accel_random_walk`` [m/s^3/sqrt(Hz)].
         cfg: noise multipliers.
+        scales: (gyro, accel) white-noise multipliers in place of ``cfg.noise_scale`` (e.g. measured).
 
     Returns:
         Parameters with gravity ``(0, 0, -g)`` (``MakeSharedU``); covariances are densities squared (GTSAM
@@ -59,8 +61,9 @@ def preintegration_params(imu, cfg: ImuNoiseConfig | None = None):
             raise ValueError(f"IMU parameter {name}={val!r} must be a positive finite number")
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(cfg.gravity)
     I3 = np.eye(3)
-    p.setGyroscopeCovariance((cfg.noise_scale * imu.gyro_noise_density) ** 2 * I3)
-    p.setAccelerometerCovariance((cfg.noise_scale * imu.accel_noise_density) ** 2 * I3)
+    sg, sa = scales if scales is not None else (cfg.noise_scale, cfg.noise_scale)
+    p.setGyroscopeCovariance((sg * imu.gyro_noise_density) ** 2 * I3)
+    p.setAccelerometerCovariance((sa * imu.accel_noise_density) ** 2 * I3)
     p.setIntegrationCovariance(cfg.integration_sigma**2 * I3)
     p.setBiasOmegaCovariance((cfg.walk_scale * imu.gyro_random_walk) ** 2 * I3)
     p.setBiasAccCovariance((cfg.walk_scale * imu.accel_random_walk) ** 2 * I3)
@@ -229,6 +232,32 @@ def propagate(
         p = p + v * dt[k] + 0.5 * a * dt[k] ** 2
         v = v + a * dt[k]
         R = R @ dR[k]
+    return R, p, v
+
+
+def propagate_back(
+    R_w_b: np.ndarray,
+    p_w: np.ndarray,
+    v_w: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    dt: np.ndarray,
+    bg: np.ndarray | None = None,
+    ba: np.ndarray | None = None,
+    g_w: np.ndarray = GRAVITY_W,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse of :func:`propagate`: the state at the start of the pieces from the state at their end."""
+    R = np.array(R_w_b, dtype=np.float64)
+    p = np.array(p_w, dtype=np.float64)
+    v = np.array(v_w, dtype=np.float64)
+    bg = np.zeros(3) if bg is None else np.asarray(bg, dtype=np.float64)
+    ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
+    dR = so3_exp((gyro - bg) * dt[:, None])
+    for k in range(dt.shape[0] - 1, -1, -1):
+        R = R @ dR[k].T
+        a = R @ (accel[k] - ba) + g_w
+        v = v - a * dt[k]
+        p = p - v * dt[k] - 0.5 * a * dt[k] ** 2
     return R, p, v
 
 

@@ -176,22 +176,31 @@ class SlidingWindowBackend:
         self.providers.append(provider)
 
     # ------------------------------------------------------------------ building
-    def initialize(self, kf: Keyframe) -> None:
+    def initialize(self, kf: Keyframe, sigmas: dict | None = None) -> None:
         """Start a new window with ``kf`` and priors on its state (gauge: position and yaw).
 
+        ``sigmas`` overrides the config's ``prior_*_sigma`` (keys without the ``prior_`` prefix and ``_sigma``
+        suffix: ``roll_pitch``, ``vel``, ``gyro_bias``, ...), e.g. the looser priors of an in-motion start.
         Final keyframe poses and map points of earlier windows are kept.
         """
         self.clear_window()
         self.init_kf_id = kf.kf_id
-        c = self.cfg
+        c = {
+            k: getattr(self.cfg, f"prior_{k}_sigma")
+            for k in ("roll_pitch", "yaw", "pos", "vel", "acc_bias", "gyro_bias")
+        }
+        unknown = set(sigmas or {}) - set(c)
+        if unknown:
+            raise ValueError(f"unknown prior sigma(s) {sorted(unknown)}; known: {sorted(c)}")
+        c.update(sigmas or {})
         self.map.insert_keyframe(kf)
         self.prior_factors = gravity_aligned_priors(
             kf,
-            c.prior_roll_pitch_sigma,
-            c.prior_yaw_sigma,
-            c.prior_pos_sigma,
-            c.prior_vel_sigma,
-            [c.prior_acc_bias_sigma] * 3 + [c.prior_gyro_bias_sigma] * 3,
+            c["roll_pitch"],
+            c["yaw"],
+            c["pos"],
+            c["vel"],
+            [c["acc_bias"]] * 3 + [c["gyro_bias"]] * 3,
         )
 
     def add_keyframe(self, kf: Keyframe, pim) -> None:

@@ -3,6 +3,13 @@
 All tracks are triangulated at once: observations are packed into (M, V) arrays with a mask, the DLT rows of
 missing views are zero (they do not change the solution), and the smallest eigenvector of each 4x4 normal
 matrix gives the point. Coordinates are taken relative to the mean camera centre for conditioning.
+
+Each view's reprojection error passes a chi-square test (2 dof) at the stated ``pixel_sigma`` unless
+``max_reproj_px`` gives an explicit bound. The sigma is the noise of an observation against a map on real images,
+calibration and tracking drift included: ``benchmarks/bench_frontend.py`` triangulates the MH_05 excerpt's tracks
+of 10 frames or more with the ground-truth poses and finds a robust sigma of 0.7-0.8 px (about 0.6 px once each
+frame's pose is refined against the points; 0.46 px on the synthetic flight preset), hence 0.7 px and a bound of
+2.1 px.
 """
 
 from __future__ import annotations
@@ -10,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from runtime.frontend.tracking import chi2_bound
 
 
 @dataclass
@@ -19,8 +28,17 @@ class TriangulationConfig:
     min_parallax_deg: float = 2.0  # largest angle between any observing ray and the first one
     min_depth: float = 0.1  # m, in every observing camera
     max_depth: float = 40.0  # m
-    max_reproj_px: float = 2.0  # in every view (pixels, focal length fx)
+    pixel_sigma: float = 0.7  # px, noise of an observation on real images (bench_frontend.py)
+    chi2_prob: float = 0.99  # acceptance probability of the per-view chi-square test (2 dof)
+    max_reproj_px: float = 0.0  # explicit bound in every view [px, fx]; 0: the chi-square bound of pixel_sigma
     min_views: int = 2
+
+    @property
+    def reproj_bound_px(self) -> float:
+        """The reprojection error [px] every view must stay under."""
+        if self.max_reproj_px > 0:
+            return self.max_reproj_px
+        return chi2_bound(self.pixel_sigma, self.chi2_prob, 2)
 
 
 def triangulate(
@@ -95,7 +113,7 @@ def triangulate(
     ok = (
         finite
         & depth_ok
-        & (max_err < cfg.max_reproj_px)
+        & (max_err < cfg.reproj_bound_px)
         & (parallax > cfg.min_parallax_deg)
         & (mask.sum(1) >= cfg.min_views)
         & np.isfinite(X_w).all(1)

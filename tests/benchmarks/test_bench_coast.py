@@ -19,7 +19,7 @@ def test_main_prints_both_tables_and_writes_json(tmp_path, capsys):
     data = tmp_path / "data"
     root = write_euroc_sequence(
         data / f"euroc_whitewall_{DURATION:g}s_s0_x{SCALE:g}", "whitewall", DURATION, 0, imu_noise=True,
-        progress=False, scale=SCALE,
+        progress=False, scale=SCALE, realism=False,
     )  # fmt: skip
     seq = read_euroc(root)
     runs = tmp_path / "runs"

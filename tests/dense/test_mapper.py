@@ -27,7 +27,7 @@ def seq8(tmp_path_factory):
     """8 s textured sequence at half resolution (376x240) with depth0, IMU noise on."""
     out = tmp_path_factory.mktemp("seq") / "seq8"
     return sim_euroc.write_euroc_sequence(
-        out, "textured", duration=8.0, seed=3, imu_noise=True, progress=False, scale=0.5
+        out, "textured", duration=8.0, seed=3, imu_noise=True, progress=False, scale=0.5, realism=False
     )
 
 

@@ -20,7 +20,9 @@ from sim.bag import GT_TOPIC, write_bag  # noqa: E402
 def asl(tmp_path_factory):
     """3 s textured sequence at quarter resolution (188x120), noisy IMU (float64 values that must survive)."""
     out = tmp_path_factory.mktemp("asl") / "seq"
-    return sim_euroc.write_euroc_sequence(out, "textured", duration=3.0, seed=5, progress=False, scale=0.25)
+    return sim_euroc.write_euroc_sequence(
+        out, "textured", duration=3.0, seed=5, progress=False, scale=0.25, realism=False
+    )
 
 
 @pytest.fixture(scope="module", params=["bag", "ros2", "mcap"])

@@ -14,7 +14,7 @@ from sim.bag import write_bag  # noqa: E402
 @pytest.mark.slow
 def test_asl_ros1_and_ros2_give_byte_identical_trajectories(tmp_path):
     asl = sim_euroc.write_euroc_sequence(
-        tmp_path / "asl", "textured", duration=4.5, seed=3, imu_noise=True, progress=False, scale=0.5
+        tmp_path / "asl", "textured", duration=4.5, seed=3, imu_noise=True, progress=False, scale=0.5, realism=False
     )
     inputs = {
         "asl": (asl, None),

@@ -147,3 +147,69 @@ def test_parallax_is_zero_for_pure_rotation_and_selector_triggers():
     assert sel.decide(0.2, 100, 90, 1.0, 10) == (True, "few_landmarks")
     assert sel.decide(0.6, 100, 100, 0.0, 100) == (True, "time")
     assert sel.decide(0.2, 100, 100, 30.0, 100, still=True) == (False, "")
+
+
+def test_chi_square_bounds_scale_with_the_stated_pixel_sigma():
+    # quantiles: chi2_2(0.99) = 9.2103, chi2_1(0.99) = 6.6349
+    t = TrackerConfig(pixel_sigma=1.0, chi2_prob=0.99)
+    assert t.fb_threshold_px == pytest.approx(np.sqrt(2 * 9.2103), abs=1e-3)  # two KLT solves, 2 dof
+    assert t.ransac_threshold_px == pytest.approx(np.sqrt(2 * 6.6349), abs=1e-3)  # two observations, 1 dof
+    t2 = TrackerConfig(pixel_sigma=0.5, chi2_prob=0.99)
+    assert t2.fb_threshold_px == pytest.approx(0.5 * t.fb_threshold_px)
+    c = TriangulationConfig(pixel_sigma=0.8, chi2_prob=0.95)
+    assert c.reproj_bound_px == pytest.approx(0.8 * np.sqrt(-2 * np.log(0.05)))
+    assert TriangulationConfig(max_reproj_px=1.5).reproj_bound_px == 1.5  # an explicit bound wins
+
+
+def test_triangulation_accepts_views_at_the_stated_noise_and_rejects_beyond():
+    rng = np.random.default_rng(3)
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], (400, 3))
+    Ts, xn, _ = _views(X, np.array([[0, 0, 0], [0.5, 0, 0], [1.0, 0.1, 0]], float))
+    M, V = X.shape[0], 3
+    T = np.broadcast_to(Ts, (M, V, 4, 4))
+    noisy = xn + rng.normal(0, 1.0 / 458.0, xn.shape)  # 1 px per axis
+    _, ok, _ = triangulate(T, noisy, np.ones((M, V), bool), 458.0, TriangulationConfig(pixel_sigma=1.0))
+    assert ok.mean() > 0.97  # 3 views at 99 % each, less the fitted point's absorption
+    _, ok, _ = triangulate(T, noisy, np.ones((M, V), bool), 458.0, TriangulationConfig(pixel_sigma=0.3))
+    assert ok.mean() < 0.6  # sub-pixel bounds tuned to ideal images reject real noise
+
+
+def _exposure_texture(h=480, w=752, seed=0):
+    """Texture in grey levels 30-150, so that 1.5 x + 20 does not saturate."""
+    return (30 + _texture(h, w, seed).astype(np.float32) * (120 / 255)).astype(np.uint8)
+
+
+def test_klt_holds_tracks_through_an_exposure_change():
+    cam = EUROC_CAM.pinhole()
+    img = _exposure_texture()
+    shift = np.array([2.6, 1.3])
+    moved = cv2.warpAffine(img, np.array([[1, 0, shift[0]], [0, 1, shift[1]]]), (752, 480), flags=cv2.INTER_LINEAR)
+    bright = np.clip(1.5 * moved.astype(np.float32) + 20, 0, 255).astype(np.uint8)
+    kept = {}
+    for normalize in (True, False):
+        trk = FeatureTracker(cam, EUROC_T_BS, FeatureConfig(max_features=200), TrackerConfig(normalize=normalize))
+        trk.track(0, img)
+        f0 = trk.replenish(0, img)
+        f1 = trk.track(1, bright)
+        common, i0, i1 = np.intersect1d(f0.ids, f1.ids, return_indices=True)
+        kept[normalize] = len(common) / len(f0.ids)
+        if normalize:
+            assert np.median(np.abs(f1.uv[i1] - f0.uv[i0] - shift)) < 0.1
+    assert kept[True] >= 0.9
+    assert kept[False] < kept[True]  # the raw KLT's brightness constancy does not hold
+
+
+def test_weak_cells_get_their_minimum_from_the_low_threshold():
+    strong = _texture(seed=1)
+    faint = (120 + (_texture(seed=2).astype(np.float32) - 128) * 0.07).astype(np.uint8)  # +-9 grey levels
+    img = faint.copy()
+    img[:, :376] = strong[:, :376]  # left half high contrast, right half faint
+    base = dict(max_features=240, grid_cols=6, grid_rows=4, fast_threshold=15, fast_threshold_low=5)
+    cells = lambda p: (p[:, 1] * 4 // 480).astype(int) * 6 + (p[:, 0] * 6 // 752).astype(int)  # noqa: E731
+    right = np.array([r * 6 + q for r in range(4) for q in (3, 4, 5)])
+    p0 = FeatureDetector(752, 480, FeatureConfig(**base, min_per_cell=0)).detect(img)
+    p2 = FeatureDetector(752, 480, FeatureConfig(**base, min_per_cell=3)).detect(img)
+    n0, n2 = np.bincount(cells(p0), minlength=24), np.bincount(cells(p2), minlength=24)
+    assert n0[right].max() == 0  # the faint half holds no corner at the normal threshold
+    assert n2[right].min() >= 3  # every faint cell gets its minimum
+    assert len(p2) <= 240

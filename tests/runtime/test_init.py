@@ -67,5 +67,46 @@ def test_moving_start_is_reported_clearly(caplog):
     with caplog.at_level(logging.WARNING):
         for k in range(200, 400, 10):
             assert init.check(int(ts[k]), ts[k - 200 : k], gyro[k - 200 : k], acc[k - 200 : k]) is None
-    assert caplog.text.count("not still") == 1  # reported once
-    assert "dynamic initialisation is not implemented" in caplog.text
+    assert caplog.text.count("not at rest") == 1  # reported once
+    assert "initialising in motion" in caplog.text
+
+
+def _vibration(ts, seed=0, gyro_amp=0.055, accel_amp=0.7):
+    """Rotor vibration: two sines per axis at 87 and 123 Hz (aliased by 200 Hz sampling), random phases;
+    raw spread about 0.04 rad/s and 0.5 m/s^2 as on a hovering MAV."""
+    rng = np.random.default_rng(seed)
+    t = (ts - ts[0]) * 1e-9
+    out = []
+    for amp in (gyro_amp, accel_amp):
+        ph = rng.uniform(0, 2 * np.pi, (2, 3))
+        out.append(
+            amp
+            * (np.sin(2 * np.pi * 87 * t[:, None] + ph[0]) + np.sin(2 * np.pi * 123 * t[:, None] + ph[1]))
+            / np.sqrt(2)
+        )
+    return out
+
+
+def test_vibrating_rest_is_accepted_and_its_noise_measured():
+    ts, gyro, acc, R = _still()
+    vg, va = _vibration(ts)
+    gyro, acc = gyro + vg, acc + va
+    assert np.std(gyro, 0).max() > 0.03 and np.std(acc, 0).max() > 0.4  # the old raw-std rule refused this
+    res = StaticInitializer().check(int(ts[-1]) + 5_000_000, ts, gyro, acc, flow_px=0.1)
+    assert res is not None
+    assert np.allclose(res.bias[3:], [0.01, -0.02, 0.005], atol=3e-3)
+    up_b = R.T @ [0, 0, 1.0]
+    assert np.degrees(np.arccos(np.clip(res.R_w_b @ up_b @ [0, 0, 1.0], -1, 1))) < 0.5
+    assert res.noise[0] > 0.03 and res.noise[1] > 0.4  # measured: white noise plus vibration
+
+
+def test_vibrating_motion_is_refused():
+    ts = np.arange(200, dtype=np.int64) * 5_000_000
+    t = ts * 1e-9
+    vg, va = _vibration(ts, seed=2)
+    gyro = np.stack([0.15 * np.sin(2 * t), 0.1 * np.cos(3 * t), 0.05 * np.sin(5 * t)], 1) + vg
+    acc = np.array([0, 0, GRAVITY]) + np.stack([0.8 * np.sin(4 * t), 0.6 * np.cos(3 * t), 0 * t], 1) + va
+    init = StaticInitializer()
+    assert init.check(int(ts[-1]), ts, gyro, acc, flow_px=0.2) is None  # the IMU moves, even if the image does not
+    ts2, g2, a2, _ = _still()
+    assert init.check(int(ts2[-1]), ts2, g2, a2, flow_px=3.0) is None  # the image moves, even if the IMU does not

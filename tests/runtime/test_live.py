@@ -15,7 +15,9 @@ sim_euroc = pytest.importorskip("sim.euroc")
 def seq(tmp_path_factory):
     out = tmp_path_factory.mktemp("live") / "seq"
     return read_euroc(
-        sim_euroc.write_euroc_sequence(out, "textured", duration=4.5, seed=3, imu_noise=True, progress=False, scale=0.5)
+        sim_euroc.write_euroc_sequence(
+            out, "textured", duration=4.5, seed=3, imu_noise=True, progress=False, scale=0.5, realism=False
+        )
     )
 
 

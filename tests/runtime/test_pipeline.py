@@ -25,7 +25,7 @@ def tiny(tmp_path_factory):
     """10 s textured sequence at half resolution (376x240), IMU noise on."""
     out = tmp_path_factory.mktemp("seq") / "tiny"
     return sim_euroc.write_euroc_sequence(
-        out, "textured", duration=10.0, seed=3, imu_noise=True, progress=False, scale=0.5
+        out, "textured", duration=10.0, seed=3, imu_noise=True, progress=False, scale=0.5, realism=False
     )
 
 
@@ -69,7 +69,7 @@ def test_pipeline_on_10s_rendered_sequence_reaches_bounded_ate_and_writes_output
 
 def test_zoh_segments_and_gtsam_preintegration_reproduce_noiseless_sim_ground_truth(tmp_path):
     root = sim_euroc.write_euroc_sequence(
-        tmp_path / "exact", "textured", duration=5.0, seed=1, imu_noise=False, progress=False, scale=0.25
+        tmp_path / "exact", "textured", duration=5.0, seed=1, imu_noise=False, progress=False, scale=0.25, realism=False
     )
     seq = read_euroc(root)
     imu = ImuStream.from_sequence(seq)

@@ -22,7 +22,7 @@ def _files(root: Path) -> dict[str, bytes]:
 
 
 def test_same_seed_same_bytes_other_seed_differs(tmp_path):
-    kw = dict(preset="textured", duration=3.0, imu_noise=True, progress=False, scale=0.25)
+    kw = dict(preset="textured", duration=3.0, imu_noise=True, progress=False, scale=0.25, realism=False)
     a = _files(write_euroc_sequence(tmp_path / "a", seed=5, **kw))
     b = _files(write_euroc_sequence(tmp_path / "b", seed=5, workers=2, **kw))  # spawn pool: same bytes
     c = _files(write_euroc_sequence(tmp_path / "c", seed=6, **kw))
@@ -35,7 +35,7 @@ def test_same_seed_same_bytes_other_seed_differs(tmp_path):
 
 
 def test_rewrite_replaces_own_output_but_refuses_foreign(tmp_path):
-    kw = dict(duration=3.0, seed=0, imu_noise=False, progress=False, scale=0.25)
+    kw = dict(duration=3.0, seed=0, imu_noise=False, progress=False, scale=0.25, realism=False)
     root = write_euroc_sequence(tmp_path / "seq", **kw)
     stale = root / "mav0" / "cam0" / "data" / "stale.png"
     stale.write_bytes(b"x")
@@ -59,6 +59,7 @@ def test_cli_euroc_subprocess(tmp_path):
         "duration=3",
         "seed=2",
         "imu_noise=false",
+        "realism=false",
         "scale=0.25",
         "workers=1",
         "progress=false",

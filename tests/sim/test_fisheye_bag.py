@@ -53,7 +53,18 @@ def test_pinhole_view_of_a_fisheye_sequence(fish):
 @pytest.mark.parametrize("fmt", ["bag", "mcap"])
 def test_dit_sim_writes_bags_that_dit_slam_reads(tmp_path, fmt, capsys):
     out = tmp_path / fmt
-    sim_main(["euroc", f"out={out}", f"format={fmt}", "duration=3", "scale=0.25", "progress=false", "workers=1"])
+    sim_main(
+        [
+            "euroc",
+            f"out={out}",
+            f"format={fmt}",
+            "duration=3",
+            "scale=0.25",
+            "progress=false",
+            "workers=1",
+            "realism=false",
+        ]
+    )
     assert f"calib={out / 'calib'}" in capsys.readouterr().out
     bag = out / ("sequence.bag" if fmt == "bag" else "sequence")
     seq = open_sequence(bag, out / "calib")

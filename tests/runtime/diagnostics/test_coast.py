@@ -27,10 +27,10 @@ def sequences(tmp_path_factory):
     """The same whitewall trajectory with exact IMU and with noisy IMU (folder names as bench_coast reads them)."""
     base = tmp_path_factory.mktemp("coast")
     exact = write_euroc_sequence(
-        _folder(base / "exact"), "whitewall", DURATION, 0, imu_noise=False, progress=False, scale=SCALE
+        _folder(base / "exact"), "whitewall", DURATION, 0, imu_noise=False, progress=False, scale=SCALE, realism=False
     )
     noisy = write_euroc_sequence(
-        _folder(base / "noisy"), "whitewall", DURATION, 0, imu_noise=True, progress=False, scale=SCALE
+        _folder(base / "noisy"), "whitewall", DURATION, 0, imu_noise=True, progress=False, scale=SCALE, realism=False
     )
     return exact, noisy
 

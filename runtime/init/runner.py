@@ -1,0 +1,167 @@
+"""Choosing how to initialise, frame by frame, until one way succeeds.
+
+Each tracked frame before initialisation is kept (its features, and its image for the dense mapper) for
+``max(still_duration_s, window_s)`` plus a margin. At every frame, in this order:
+
+1. **At rest** (:class:`runtime.init.static.StaticInitializer`): the last ``still_duration_s`` of IMU samples
+   and tracks pass the rest rule. The frames of that window get the initial pose (the sensor did not move).
+2. **In motion** (:func:`runtime.init.dynamic.initialize_in_motion`), every ``try_every_s`` once the frames
+   span ``min_window_s``: structure from motion and the visual-inertial alignment over the frames since
+   ``window_s`` ago (from the first frame while the sequence is younger), ``n_frames`` of them.
+3. **Turning in place** (:func:`runtime.init.dynamic.initialize_hovering`), when the window spans ``window_s``,
+   structure from motion failed and the images show rotation only.
+
+The result names the method and holds the states of the window's frames (keyframes for an in-motion start), the
+poses of the frames in between, and those of the older kept frames by integrating the IMU backwards from the
+window's first state, so that every frame before initialisation gets a pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.backend.imu import propagate_back
+from runtime.geometry import interpolate_poses, make_T, ns_to_s, s_to_ns
+from runtime.init.dynamic import DynamicInitConfig, InitFailed, initialize_hovering, initialize_in_motion, rotation_only
+from runtime.init.static import InitConfig, StaticInitializer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Snapshot:
+    """A tracked frame before initialisation."""
+
+    frame_idx: int
+    ts: int
+    feats: object  # runtime.frontend.tracking.FrameFeatures
+    image: np.ndarray | None = None
+
+
+@dataclass
+class StartState:
+    """How the system starts: ``keyframes`` (snapshots with their states, oldest first; one for a start at rest or
+    hovering) and the poses of the other window frames (``frames``: ``(snapshot, T_w_b)``)."""
+
+    method: str  # static | dynamic | hover
+    keyframes: list  # [(Snapshot, T_w_b (4, 4), v_w (3,))]
+    bias: np.ndarray  # (6,) [ba, bg]
+    frames: list = field(default_factory=list)
+    sigmas: dict = field(default_factory=dict)  # prior sigmas of the first state (backend.initialize)
+    info: dict = field(default_factory=dict)
+    noise: tuple[float, float] | None = None  # measured gyro / accel noise level (static start)
+
+
+class InitRunner:
+    """Feed every tracked frame with :meth:`add`; :meth:`step` returns a :class:`StartState` once initialised."""
+
+    def __init__(self, init_cfg: InitConfig, dyn_cfg: DynamicInitConfig, imu, T_b_c, focal: float, gravity: float):
+        self.cfg, self.dyn = init_cfg, dyn_cfg
+        self.imu, self.T_b_c, self.focal, self.gravity = imu, T_b_c, focal, gravity
+        self.static = StaticInitializer(init_cfg, gravity)
+        self.frames: deque[Snapshot] = deque()
+        self.last_try: int | None = None
+        self.tries = 0
+        self.last_reason = ""
+
+    def reset(self) -> None:
+        self.frames.clear()
+        self.static.reset()
+        self.last_try = None
+
+    def add(self, snap: Snapshot, keep_since: int | None = None) -> None:
+        """Keep ``snap``; frames older than the windows (or than ``keep_since``, ns, when given, at most
+        ``refine_within_s`` back) are dropped, images older than the window too."""
+        self.frames.append(snap)
+        recent = snap.ts - s_to_ns(max(self.cfg.still_duration_s, self.dyn.window_s) + 0.5)
+        oldest = recent if keep_since is None else max(keep_since, snap.ts - s_to_ns(self.dyn.refine_within_s))
+        while self.frames and self.frames[0].ts < oldest:
+            self.frames.popleft()
+        for old in self.frames:
+            if old.ts >= recent:
+                break
+            old.image = None
+
+    def _flow(self, w0: int) -> float | None:
+        """Median net displacement [px] of the tracks since ``w0`` (None: too few common tracks)."""
+        snaps = [s for s in self.frames if s.ts >= w0]
+        if len(snaps) < 2:
+            return None
+        a, b = snaps[0].feats, snaps[-1].feats
+        _, i0, i1 = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
+        return float(np.median(np.linalg.norm(a.uv[i0] - b.uv[i1], axis=1))) if i0.size >= 10 else None
+
+    def step(self, ts: int) -> StartState | None:
+        """Try to initialise at frame time ``ts`` (the newest frame added)."""
+        w0 = ts - s_to_ns(self.cfg.still_duration_s)
+        its, ig, ia = self.imu.window(w0, ts)
+        res = self.static.check(ts, its, ig, ia, self._flow(w0))
+        newest = self.frames[-1]
+        if res is not None:
+            rest = [(s, res.T_w_b) for s in self.frames if s.ts >= w0 and s is not newest]
+            rest += self._before(rest[0][0] if rest else newest, res.T_w_b, res.v_w, res.bias)
+            return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest, {}, res.info, res.noise)
+        return self.try_motion(ts, allow_hover=True)
+
+    def try_motion(self, ts: int, allow_hover: bool, since: int | None = None) -> StartState | None:
+        """In motion (or, with ``allow_hover``, turning in place) over the frames of the last ``window_s`` (or
+        all kept frames from ``since``, ns); None when not (yet)."""
+        d = self.dyn
+        span = ns_to_s(ts - self.frames[0].ts)
+        if not d.enabled or span < d.min_window_s:
+            return None
+        if self.last_try is not None and ns_to_s(ts - self.last_try) < d.try_every_s - 1e-6:
+            return None
+        self.last_try = ts
+        win = [s for s in self.frames if s.ts >= (ts - s_to_ns(d.window_s) if since is None else since)]
+        idx = np.unique(np.linspace(0, len(win) - 1, min(d.n_frames, len(win))).round().astype(int))
+        sel = [win[i] for i in idx]
+        feats = [s.feats for s in sel]
+        _, par_px, n = rotation_only(feats[0], feats[-1], self.focal)  # cheap: skip SfM without translation
+        try:
+            if n >= d.min_tracks and par_px < d.min_parallax_px:
+                raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
+            self.tries += 1
+            r = initialize_in_motion(feats, self.imu, self.T_b_c, self.focal, d, self.gravity)
+            method = "dynamic"
+        except InitFailed as e:
+            self.last_reason = str(e)
+            if not allow_hover or span < d.window_s:
+                return None
+            try:
+                r = initialize_hovering(feats, self.imu, self.T_b_c, self.focal, d)
+                method = "hover"
+            except InitFailed as e2:
+                self.last_reason = f"{e}; {e2}"
+                log.debug("t=%.3f s: no initialisation yet (%s)", ns_to_s(ts), self.last_reason)
+                return None
+        bias = np.concatenate([np.zeros(3), r.bg])
+        if method == "hover":  # one start state, the window's other frames at their rotations
+            kfs = [(sel[-1], r.T_w_b[-1], r.v_w[-1])]
+            sigmas = {"vel": d.prior_hover_vel_sigma}
+        else:
+            kfs = [(s, T, v) for s, T, v in zip(sel, r.T_w_b, r.v_w, strict=True)]
+            sigmas = {"vel": d.prior_vel_sigma}
+        sigmas.update(roll_pitch=d.prior_roll_pitch_sigma, gyro_bias=d.prior_gyro_bias_sigma)
+        others = [s for s in win if all(s is not k[0] for k in kfs)]
+        T_o, inside = interpolate_poses(np.array([s.ts for s in others], np.int64), r.ts, r.T_w_b)
+        frames = [(s, T) for s, T, ok in zip(others, T_o, inside, strict=True) if ok]
+        frames += self._before(sel[0], r.T_w_b[0], r.v_w[0], bias)
+        info = dict(r.info, attempts=self.tries)
+        return StartState(method, kfs, bias, frames, sigmas, info)
+
+    def _before(self, first: Snapshot, T: np.ndarray, v: np.ndarray, bias: np.ndarray) -> list:
+        """Poses of the kept frames older than ``first`` (state ``T``, ``v``), by integrating the IMU backwards,
+        at most ``backfill_s`` back (the unknown accelerometer bias grows the error with the square of time)."""
+        older = [s for s in self.frames if first.ts - s_to_ns(self.dyn.backfill_s) <= s.ts < first.ts]
+        out = []
+        R, p, t = T[:3, :3], T[:3, 3], first.ts
+        for s in reversed(older):
+            R, p, v = propagate_back(R, p, v, *self.imu.segment(s.ts, t), bg=bias[3:], ba=bias[:3])
+            t = s.ts
+            out.append((s, make_T(R, p)))
+        return out

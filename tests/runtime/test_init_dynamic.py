@@ -1,0 +1,107 @@
+"""In-motion initialisation: known answers from exact synthetic features and IMU."""
+
+import numpy as np
+import pytest
+
+from runtime.backend.imu import ImuStream
+from runtime.geometry import GRAVITY, so3_exp, so3_log
+from runtime.init import DynamicInitConfig, InitFailed, initialize_in_motion
+from runtime.init.dynamic import estimate_gyro_bias, initialize_hovering, rotation_only
+from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, FakeTracker, Motion, make_imu, room_points
+
+T0 = 10**9
+
+
+def _frames(motion, t_end, sigma_px=0.0, bias=None, seed=0):
+    ts, g, a = make_imu(motion, t_end + 0.2, t0_ns=T0)
+    if bias is not None:
+        g = g + bias
+    imu = ImuStream(ts, g, a, 200.0)
+    trk = FakeTracker(EUROC_CAM, EUROC_T_BS, room_points(seed=seed), motion, T0, sigma_px=sigma_px, seed=seed)
+    frames = []
+    for f in T0 + np.arange(0, int(t_end * 20) + 1) * 50_000_000:
+        trk.track(int(f), None)
+        frames.append(trk.replenish(int(f), None))
+    return frames, imu
+
+
+def _tilt_deg(R_est, R_true):
+    up = np.array([0.0, 0.0, 1.0])
+    return np.degrees(np.arccos(np.clip((R_est.T @ up) @ (R_true.T @ up), -1, 1)))
+
+
+def test_noiseless_motion_gives_gravity_scale_and_velocity():
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0)
+    frames, imu = _frames(m, 1.6, bias=np.array([0.01, -0.02, 0.015]))
+    sel = frames[4::3][:10]
+    r = initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig())
+    t = (r.ts - T0) * 1e-9
+    T_true = m.body(t)
+    v_true = m.velocity(t)
+    # gravity: roll and pitch of every frame
+    assert max(_tilt_deg(r.T_w_b[k, :3, :3], T_true[k, :3, :3]) for k in range(len(t))) < 0.1
+    # scale: relative positions in the true world up to yaw (compare lengths of the displacements)
+    d_est = np.linalg.norm(r.T_w_b[:, :3, 3] - r.T_w_b[0, :3, 3], axis=1)
+    d_true = np.linalg.norm(T_true[:, :3, 3] - T_true[0, :3, 3], axis=1)
+    assert np.abs(d_est - d_true).max() < 0.01 * d_true.max() + 1e-3
+    # velocities in the body frame (yaw-free)
+    vb_est = np.einsum("fji,fj->fi", r.T_w_b[:, :3, :3], r.v_w)
+    vb_true = np.einsum("fji,fj->fi", T_true[:, :3, :3], v_true)
+    assert np.abs(vb_est - vb_true).max() < 0.02, (vb_est, vb_true)
+    assert np.allclose(r.bg, [0.01, -0.02, 0.015], atol=1e-3)
+    assert r.info["scale"] > 0 and abs(r.info["gravity_free"] - GRAVITY) < 0.2
+
+
+def test_too_little_translation_is_refused_and_turning_in_place_initialises():
+    m = Motion(seed=1, t_rest=0.0, t_ramp=0.2, amp=0.0, rate=0.6)  # rotation only
+    frames, imu = _frames(m, 1.2)
+    sel = frames[2::2][:10]
+    with pytest.raises(InitFailed, match="parallax"):
+        initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig())
+    r = initialize_hovering(sel, imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig())
+    T_true = m.body((r.ts - T0) * 1e-9)
+    assert max(_tilt_deg(r.T_w_b[k, :3, :3], T_true[k, :3, :3]) for k in range(len(sel))) < 0.2
+    assert np.allclose(r.v_w, 0)
+
+
+def test_hovering_refuses_translation():
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0)
+    frames, imu = _frames(m, 1.6)
+    with pytest.raises(InitFailed, match="translates"):
+        initialize_hovering(frames[4::3][:10], imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig())
+
+
+def test_rotation_only_fit_and_gyro_bias_known_answers():
+    rng = np.random.default_rng(0)
+    R_true = so3_exp(np.array([0.02, -0.05, 0.1]))
+
+    class F:  # minimal stand-in for FrameFeatures
+        def __init__(self, ids, xn):
+            self.ids, self.xn = ids, xn
+
+    b = rng.normal(size=(50, 3)) + [0, 0, 5]
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    b1 = b @ R_true  # rows: R_true^T b
+    a_ = F(np.arange(50), b[:, :2] / b[:, 2:])
+    c_ = F(np.arange(50), b1[:, :2] / b1[:, 2:])
+    R, res, n = rotation_only(a_, c_, 500.0)
+    assert n == 50 and res < 1e-6 and np.allclose(R, R_true, atol=1e-9)
+    # gyro bias: rotations from a constant rate plus a bias
+    w, bg = np.array([0.1, 0.3, -0.2]), np.array([0.004, -0.003, 0.002])
+    dt = np.full(10, 0.005)
+    segs = [(np.tile(w + bg, (10, 1)), np.zeros((10, 3)), dt) for _ in range(5)]
+    R_w_b = np.stack([so3_exp(w * 0.05 * k) for k in range(6)])
+    assert np.allclose(estimate_gyro_bias(R_w_b, segs), bg, atol=1e-7)
+    assert np.linalg.norm(so3_log(R_w_b[1])) == pytest.approx(np.linalg.norm(w) * 0.05)
+
+
+def test_frame_alignment_is_a_yaw_and_a_translation():
+    from runtime.geometry import make_T
+    from runtime.start import frame_alignment
+
+    T_new = make_T(so3_exp(np.array([0.1, -0.05, 0.7])), [1.0, 2.0, 0.5])
+    yaw = so3_exp(np.array([0.0, 0.0, -1.2]))
+    T_old = make_T(yaw @ T_new[:3, :3], [4.0, -1.0, 2.0])
+    A = frame_alignment(T_old, T_new)
+    assert np.allclose(A @ T_new, T_old, atol=1e-12)
+    assert np.allclose(A[:3, :3], yaw, atol=1e-12) and np.allclose(A[2, :3], [0, 0, 1])

@@ -56,10 +56,14 @@ def trajectory_metrics(
         raise ValueError(f"estimate has {est_ts.size} timestamps but poses of shape {est_T.shape}")
     ref_T, inside = interpolate_poses(est_ts, gt_ts, gt_T)
     if inside.sum() < 3:
-        raise ValueError(f"only {int(inside.sum())} estimated poses lie within the ground truth's time range")
+        raise ValueError(
+            f"only {int(inside.sum())} estimated poses lie within the ground truth's time range (estimate "
+            f"{ns_to_s(est_ts[0]):.3f}..{ns_to_s(est_ts[-1]):.3f} s, ground truth {ns_to_s(gt_ts[0]):.3f}.."
+            f"{ns_to_s(gt_ts[-1]):.3f} s; same clock and unit?)"
+        )
     ts = est_ts[inside]
     est = _traj(ts, est_T[inside])
-    ref = _traj(ts, ref_T)
+    ref = _traj(ts, ref_T[inside])
     out: dict = {"eval_frames": int(ts.size), "path_length_m": float(ref.path_length)}
 
     est_se3 = copy.deepcopy(est)
@@ -212,7 +216,7 @@ def best_time_offset(
 
     def rmse(d: float) -> float:
         ref, inside = interpolate_poses(est_ts + int(round(d * 1e9)), gt_ts, gt_T)
-        return _umeyama_rmse(p_est[inside], ref[:, :3, 3]) if inside.sum() >= 3 else float("inf")
+        return _umeyama_rmse(p_est[inside], ref[inside, :3, 3]) if inside.sum() >= 3 else float("inf")
 
     zero = rmse(0.0)
     if not np.isfinite(zero):

@@ -15,7 +15,6 @@ N_FEAT = 6
 
 
 def _prior(channels: int, h: int, w: int, bias: float):
-    import onnx
     from onnx import TensorProto, helper
 
     nodes = [helper.make_node("ReduceMean", ["image", "axes"], ["mean"], keepdims=1)]
@@ -71,10 +70,15 @@ def write_model(
 ) -> Path:
     """A model folder (prior.onnx, decoder.onnx, manifest.json) like dit-export's; ``bias`` changes the prior's
     bytes (two folders with different ``bias`` are two different exports)."""
+    import hashlib
+
     import onnx
     import onnxruntime as ort
 
-    from runtime.network import MODALITY_CHANNELS, file_sha256
+    from runtime.network import MODALITY_CHANNELS
+
+    def file_sha256(p):
+        return hashlib.sha256(Path(p).read_bytes()).hexdigest()
 
     out.mkdir(parents=True, exist_ok=True)
     code_dim = 8

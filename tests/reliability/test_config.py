@@ -5,7 +5,6 @@ import math
 
 import pytest
 
-from runtime.config import value_range
 from runtime.dense import DenseConfig
 from runtime.slam import SlamConfig
 
@@ -21,6 +20,8 @@ def _numeric(obj, path):
 
 @pytest.mark.parametrize("cfg", [SlamConfig(), DenseConfig()], ids=["runtime", "dense_settings"])
 def test_every_numeric_default_lies_in_its_range(cfg):
+    from runtime.config import value_range
+
     n = 0
     for cls, name, v, key in _numeric(cfg, "x"):
         lo, hi = value_range(cls, name)

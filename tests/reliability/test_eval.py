@@ -3,7 +3,6 @@ and nanosecond timestamps in a TUM file are one clear error."""
 
 import json
 
-import numpy as np
 import pytest
 
 from apps.evaluate import main as eval_main

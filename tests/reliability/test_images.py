@@ -6,7 +6,6 @@ import shutil
 import cv2
 import numpy as np
 
-from runtime.image_check import ImageCheck
 from runtime.io.euroc import read_euroc
 from runtime.run import run_sequence
 
@@ -30,6 +29,8 @@ def test_good_images_give_no_warning(tiny_seq, tmp_path):
 
 
 def test_saturated_image_is_reported_once():
+    from runtime.image_check import ImageCheck
+
     chk = ImageCheck()
     white = np.full((48, 64), 255, np.uint8)
     assert "100% of the pixels are saturated" in chk.look(0, white)[0]

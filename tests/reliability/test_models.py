@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from runtime.network import DepthNetwork, ModelError, default_model_dir, file_sha256
+from runtime.network import DepthNetwork, ModelError, default_model_dir
 from tests.reliability.fakes import write_model
 
 
@@ -21,6 +21,8 @@ def test_folder_mixing_two_exports_is_refused(tmp_path):
 
 
 def test_shipped_manifest_records_the_hashes_of_its_files():
+    from runtime.network import file_sha256
+
     m = json.loads((default_model_dir() / "manifest.json").read_text())
     assert m["run_id"] and set(m["files"]) == {"prior.onnx", "decoder.onnx"}
     for name, rec in m["files"].items():

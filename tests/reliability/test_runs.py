@@ -7,10 +7,8 @@ import signal
 
 import pytest
 
-from apps.slam import default_out
 from apps.slam import main as slam_main
 from runtime.io.euroc import read_euroc
-from runtime.outputs import atomic_text, atomic_write, prepare_run_dir
 from runtime.run import run_sequence
 
 
@@ -67,6 +65,8 @@ def test_a_new_run_removes_the_earlier_runs_outputs_and_says_so(tiny_seq, tmp_pa
 
 
 def test_default_outputs_differ_for_two_sequences_with_the_same_folder_name(tmp_path):
+    from apps.slam import default_out
+
     a, b = default_out(tmp_path / "x" / "seq"), default_out(tmp_path / "y" / "seq")
     assert a != b and a.name.startswith("seq-") and b.name.startswith("seq-")
     assert default_out(tmp_path / "x" / "seq") == a
@@ -93,6 +93,8 @@ def test_sigint_stops_and_writes_what_was_processed(tiny_seq, tmp_path):
 
 
 def test_a_killed_run_leaves_a_metrics_stub_marked_incomplete(tmp_path):
+    from runtime.outputs import prepare_run_dir
+
     out = tmp_path / "o"
     run_id, removed, previous = prepare_run_dir(out)
     m = json.loads((out / "metrics.json").read_text())
@@ -103,6 +105,8 @@ def test_a_killed_run_leaves_a_metrics_stub_marked_incomplete(tmp_path):
 
 
 def test_atomic_write_never_leaves_a_truncated_file(tmp_path):
+    from runtime.outputs import atomic_text, atomic_write
+
     p = atomic_text(tmp_path / "t.txt", "old, whole")
 
     def half(tmp):

@@ -198,6 +198,9 @@ def main(argv: list[str] | None = None) -> None:
     sys.argv = [Path(saved[0]).name if saved else "dit-slam", *args]
     try:
         _run()
+    except KeyboardInterrupt:  # before or after the frame loop (which stops cleanly itself)
+        print('dit-slam: interrupted; outputs of a started run are marked "complete": false', file=sys.stderr)
+        status["code"] = 130
     finally:
         sys.argv = saved
     if status["code"]:

@@ -463,7 +463,8 @@ def write_euroc_sequence(
 
     Args:
         out: folder to write (it will contain ``mav0`` and ``sim_info.json``); earlier dit-sim output there is
-            replaced (a partial one too: ``sim_info.json`` says ``"complete": false`` until the end), anything
+            replaced (a partial one too: ``sim_info.json`` says ``"complete": false`` until the end, when it is
+            replaced by the full one, which has no ``complete`` key), anything
             else raises ``FileExistsError``. An interrupted or failed run removes its partial output; every PNG
             is written atomically.
         preset: ``textured`` or ``whitewall`` (needs ``duration >= 24`` s; ``sim_info.json`` gives the
@@ -595,7 +596,6 @@ def _write_euroc(
         info["written_camera"] = [written_cam.fx, written_cam.fy, written_cam.cx, written_cam.cy, *written_cam.dist]
         info["imu_errors"] = asdict(imu_errors_for(preset)) if imu_noise else None
         info["frame_settings"] = "sim_frames.csv (exposure, gain, illumination per frame)"
-    info["complete"] = True
-    tmp = out / ".sim_info.json.partial"
+    tmp = out / ".sim_info.json.partial"  # the final sim_info.json has no "complete" key: bytes as before
     tmp.write_text(json.dumps(info, indent=2) + "\n")
     os.replace(tmp, out / "sim_info.json")

@@ -14,7 +14,8 @@ uniformly random time in [0.2 s, full run time]. After each the folder is classi
   missing, an unexpected exit status or a traceback).
 
 ``dit-export``: a tiny checkpoint (DiT, ``grays``, 64x96, width 0.25) is exported once; then ``--n`` exports of a
-second checkpoint into the same folder, each interrupted at a random time in [0.2 s, full export time]. After
+second checkpoint into the same folder, each interrupted at a random time in [0.2 s, full export time] (the
+shortest uninterrupted export so far: the first one runs with a cold cache). After
 each: ``old`` (the earlier export, verified by its SHA-256 manifest), ``new`` (the new one, verified), ``absent``
 (no model folder: killed between the two renames; clearly no model) or ``bad`` (a folder that
 :class:`runtime.network.DepthNetwork` refuses or that mixes two exports). Leftover temporary folders are counted.
@@ -46,17 +47,20 @@ def _env() -> dict:
     return env
 
 
-def _run_killed(cmd: list[str], delay: float | None, sig: int, timeout: float = 900) -> tuple[int, str, float]:
-    """Run ``cmd``; send ``sig`` after ``delay`` s (None: let it finish). Returns (status, stderr, seconds)."""
+def _run_killed(cmd: list[str], delay: float | None, sig: int, timeout: float = 900) -> tuple[int, str, float, bool]:
+    """Run ``cmd``; send ``sig`` after ``delay`` s (None: let it finish). Returns (status, stderr, seconds, whether
+    the signal was sent: False when the command ended first)."""
     t0 = time.perf_counter()
     p = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sent = False
     if delay is not None:
         try:
             p.wait(timeout=delay)
         except subprocess.TimeoutExpired:
             p.send_signal(sig)
+            sent = True
     _, err = p.communicate(timeout=timeout)
-    return p.returncode, err, time.perf_counter() - t0
+    return p.returncode, err, time.perf_counter() - t0, sent
 
 
 # ------------------------------------------------------------------------------------------------ dit-slam
@@ -114,16 +118,16 @@ def bench_slam(args, rng: random.Random, sig: int, work: Path) -> dict:
         f"out={out}",
         "progress=false",
     ]
-    rc, err, full = _run_killed(cmd, None, sig)
+    rc, err, full, _ = _run_killed(cmd, None, sig)
     first = classify_slam_out(out, rc, err)
     print(f"dit-slam full run: {full:.1f} s, {first[0]} {first[1]}")
     trials = []
     for k in range(args.n):
         delay = rng.uniform(0.2, full)
         previous = _run_id(out)
-        rc, err, took = _run_killed(cmd, delay, sig)
+        rc, err, took, sent = _run_killed(cmd, delay, sig)
         outcome, why = classify_slam_out(out, rc, err, previous)
-        trials.append({"delay_s": round(delay, 3), "status": rc, "outcome": outcome, "detail": why})
+        trials.append({"delay_s": round(delay, 3), "signalled": sent, "status": rc, "outcome": outcome, "detail": why})
         print(f"  dit-slam #{k}: signal at {delay:6.2f} s -> status {rc}, {outcome} {why}")
     return {"sequence": str(seq), "full_run_s": full, "full_run_outcome": first[0], "trials": trials}
 
@@ -169,7 +173,7 @@ def bench_export(args, rng: random.Random, sig: int, work: Path) -> dict:
     ck_old, ck_new = _checkpoint(work / "run_a", 0), _checkpoint(work / "run_b", 1)
     out = work / "model"
     base = [sys.executable, "-c", "from export.cli import main; main()", f"out={out}", "n_parity=1"]
-    rc, err, full = _run_killed([*base, f"ckpt={ck_old}"], None, sig)
+    rc, err, full, _ = _run_killed([*base, f"ckpt={ck_old}"], None, sig)
     if rc != 0:
         raise RuntimeError(f"the first export failed ({rc}): {err[-2000:]}")
     old_id = json.loads((out / "manifest.json").read_text())["run_id"]
@@ -177,19 +181,31 @@ def bench_export(args, rng: random.Random, sig: int, work: Path) -> dict:
     trials = []
     for k in range(args.n):
         delay = rng.uniform(0.2, full)
-        rc, err, took = _run_killed([*base, f"ckpt={ck_new}"], delay, sig)
+        rc, err, took, sent = _run_killed([*base, f"ckpt={ck_new}"], delay, sig)
         outcome, why = classify_model(out, old_id, rc, err)
         stray = sorted(p.name for p in work.glob(".model.*"))
-        trials.append({"delay_s": round(delay, 3), "status": rc, "outcome": outcome, "detail": why, "stray": stray})
+        trials.append(
+            {
+                "delay_s": round(delay, 3),
+                "signalled": sent,
+                "status": rc,
+                "outcome": outcome,
+                "detail": why,
+                "stray": stray,
+            }
+        )
         print(f"  dit-export #{k}: signal at {delay:6.2f} s -> status {rc}, {outcome} {why} stray={len(stray)}")
         if outcome == "new":  # back to the old model for the next trial
-            rc, err, _ = _run_killed([*base, f"ckpt={ck_old}"], None, sig)
+            if rc == 0:  # it finished before the signal: a shorter window for the next ones
+                full = min(full, took)
+            rc, err, took, _ = _run_killed([*base, f"ckpt={ck_old}"], None, sig)
+            full = min(full, took)
             old_id = json.loads((out / "manifest.json").read_text())["run_id"]
-    return {"full_run_s": full, "trials": trials}
+    return {"full_run_s": full, "trials": trials}  # full: the last window used
 
 
 def _counts(trials: list[dict]) -> dict:
-    c: dict = {}
+    c: dict = {"signalled": sum(bool(t.get("signalled")) for t in trials)}
     for t in trials:
         c[t["outcome"]] = c.get(t["outcome"], 0) + 1
     return c
@@ -222,9 +238,16 @@ def main(argv: list[str] | None = None) -> dict:
     for name, outcomes in (("slam", ("complete", "partial", "bad")), ("export", ("old", "new", "absent", "bad"))):
         if name in res:
             c = res[name]["counts"]
-            rows.append([f"dit-{name}", len(res[name]["trials"]), ", ".join(f"{o} {c.get(o, 0)}" for o in outcomes)])
+            rows.append(
+                [
+                    f"dit-{name}",
+                    len(res[name]["trials"]),
+                    c["signalled"],
+                    ", ".join(f"{o} {c.get(o, 0)}" for o in outcomes),
+                ]
+            )
     print(f"\nSIG{args.signal} at random points (seed {args.seed}):\n")
-    print(markdown_table(["command", "runs", "outcomes"], rows))
+    print(markdown_table(["command", "runs", "signalled before the end", "outcomes"], rows))
     print(f"\nwrote {write_json(args.out, res)}")
     return res
 

@@ -5,7 +5,8 @@
 
 ``dit-slam``: one full run on a rendered sequence (``--duration`` s, ``textured``, image scale ``--scale``; or
 ``--sequence DIR``) gives the run time; then ``--n`` runs into one output folder, each sent the signal at a
-uniformly random time in [0.2 s, full run time]. After each the folder is classified:
+uniformly random time in [0.2 s, window] (the window: the shortest uninterrupted run so far). After each the
+folder is classified:
 
 * ``complete``: ``metrics.json`` says ``"complete": true`` and every output it lists parses (TUM, PLY);
 * ``partial``: ``metrics.json`` says ``"complete": false`` (the stub of a run stopped before its frames were
@@ -126,10 +127,12 @@ def bench_slam(args, rng: random.Random, sig: int, work: Path) -> dict:
         delay = rng.uniform(0.2, full)
         previous = _run_id(out)
         rc, err, took, sent = _run_killed(cmd, delay, sig)
+        if not sent:  # it finished before the signal: a shorter window for the next ones
+            full = min(full, took)
         outcome, why = classify_slam_out(out, rc, err, previous)
         trials.append({"delay_s": round(delay, 3), "signalled": sent, "status": rc, "outcome": outcome, "detail": why})
         print(f"  dit-slam #{k}: signal at {delay:6.2f} s -> status {rc}, {outcome} {why}")
-    return {"sequence": str(seq), "full_run_s": full, "full_run_outcome": first[0], "trials": trials}
+    return {"sequence": str(seq), "window_s": full, "full_run_outcome": first[0], "trials": trials}
 
 
 # ---------------------------------------------------------------------------------------------- dit-export
@@ -201,7 +204,7 @@ def bench_export(args, rng: random.Random, sig: int, work: Path) -> dict:
             rc, err, took, _ = _run_killed([*base, f"ckpt={ck_old}"], None, sig)
             full = min(full, took)
             old_id = json.loads((out / "manifest.json").read_text())["run_id"]
-    return {"full_run_s": full, "trials": trials}  # full: the last window used
+    return {"window_s": full, "trials": trials}
 
 
 def _counts(trials: list[dict]) -> dict:
@@ -222,18 +225,22 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--skip-slam", action="store_true")
     ap.add_argument("--skip-export", action="store_true")
     ap.add_argument("--out", default=str(RESULTS / "faults.json"))
+    ap.add_argument("--update", action="store_true", help="keep the other command's part of an existing --out")
     args = ap.parse_args(argv)
     rng = random.Random(args.seed)
     sig = SIGNALS[args.signal]
-    res: dict = {"machine": slam_machine(), "args": vars(args), "provenance": run_provenance(REPO)}
+    res: dict = {}
+    if args.update and Path(args.out).is_file():
+        res = json.loads(Path(args.out).read_text())
+    res.update({"machine": slam_machine(), "provenance": run_provenance(REPO)})
     with tempfile.TemporaryDirectory(prefix="bench_faults_") as tmp:
         work = Path(tmp)
         if not args.skip_slam:
             res["slam"] = bench_slam(args, rng, sig, work)
-            res["slam"]["counts"] = _counts(res["slam"]["trials"])
+            res["slam"].update(counts=_counts(res["slam"]["trials"]), args=vars(args))
         if not args.skip_export:
             res["export"] = bench_export(args, rng, sig, work)
-            res["export"]["counts"] = _counts(res["export"]["trials"])
+            res["export"].update(counts=_counts(res["export"]["trials"]), args=vars(args))
     rows = []
     for name, outcomes in (("slam", ("complete", "partial", "bad")), ("export", ("old", "new", "absent", "bad"))):
         if name in res:

@@ -82,6 +82,7 @@ def main() -> None:
     from runtime.errors import split_debug
 
     signal.signal(signal.SIGTERM, _sigterm)  # clean up the temporary folder as on Ctrl-C
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # also when started with SIGINT ignored (a background job)
 
     saved = sys.argv
     args, _DEBUG["on"] = split_debug(saved[1:])

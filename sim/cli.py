@@ -157,6 +157,7 @@ def main(argv: list[str] | None = None) -> None:
 
     args, _DEBUG["on"] = split_debug(list(sys.argv[1:] if argv is None else argv))
     signal.signal(signal.SIGTERM, _sigterm)  # clean up as on Ctrl-C
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # also when started with SIGINT ignored (a background job)
     if args and args[0] in JOBS:
         args[0] = f"job={args[0]}"
     elif args and "=" not in args[0] and not args[0].startswith("-"):

@@ -2,6 +2,10 @@
 
 dit-eval trajectory est=TUM gt=TUM|EUROC_DIR|data.csv [out=DIR] [rpe_delta_s=1.0]
 dit-eval depth ...            (forwarded to train.evaluate.main, the depth evaluation)
+
+The trajectory evaluation also estimates the time offset that fits the ground truth best and warns when it is
+large, and says how many estimated poses lie outside the ground truth and were not evaluated. Expected failures
+print one line and exit with status 2 (``--debug`` adds the traceback).
 """
 
 from __future__ import annotations
@@ -18,8 +22,9 @@ _EVAL_USAGE = (
 )
 
 
-def _eval_trajectory(args: list[str]) -> int:
+def _eval_trajectory(args: list[str], debug: bool = False) -> int:
     from runtime import eval as ev
+    from runtime.errors import EXPECTED, report
 
     opts = {"est": None, "gt": None, "out": None, "rpe_delta_s": "1.0"}
     for a in args:
@@ -35,10 +40,18 @@ def _eval_trajectory(args: list[str]) -> int:
         est_ts, est_T = ev.load_trajectory(opts["est"])
         gt_ts, gt_T = ev.load_trajectory(opts["gt"])
         m = ev.trajectory_metrics(est_ts, est_T, gt_ts, gt_T, rpe_delta_s=float(opts["rpe_delta_s"]))
-    except (ValueError, OSError) as e:
-        print(f"dit-eval trajectory: {e}", file=sys.stderr)
-        return 2
-    print(f"evaluated {m['eval_frames']} poses over {m['path_length_m']:.2f} m of ground truth")
+        m.update(ev.best_time_offset(est_ts, est_T, gt_ts, gt_T))
+    except EXPECTED as e:
+        return report("dit-eval trajectory", e, debug)
+    m["estimated_poses"] = int(len(est_ts))
+    m["dropped_poses"] = int(len(est_ts) - m["eval_frames"])
+    m["warnings"] = ev.evaluation_warnings(m, len(est_ts))
+    for w in m["warnings"]:
+        print(f"dit-eval trajectory: WARNING: {w}", file=sys.stderr)
+    print(
+        f"evaluated {m['eval_frames']} of {len(est_ts)} poses over {m['path_length_m']:.2f} m of ground truth"
+        f" (best time offset {m.get('time_offset_s', float('nan')):+.3f} s)"
+    )
     for k in (
         "ate_se3_rmse_m",
         "ate_se3_mean_m",
@@ -50,21 +63,31 @@ def _eval_trajectory(args: list[str]) -> int:
     ):
         print(f"  {k:18s} {m[k]:.5f}")
     if opts["out"]:
-        out = Path(opts["out"])
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "trajectory_metrics.json").write_text(json.dumps(m, indent=2))
-        ev.plot_top_view(out / "trajectory_top.png", est_ts, est_T, gt_ts, gt_T, title=Path(opts["est"]).name)
+        from runtime.outputs import atomic_text, atomic_write, check_writable
+
+        try:
+            out = check_writable(opts["out"])
+        except EXPECTED as e:
+            return report("dit-eval trajectory", e, debug)
+        atomic_text(out / "trajectory_metrics.json", json.dumps(m, indent=2))
+        atomic_write(
+            out / "trajectory_top.png",
+            lambda p: ev.plot_top_view(p, est_ts, est_T, gt_ts, gt_T, title=Path(opts["est"]).name),
+        )
         print(f"  wrote {out}/trajectory_metrics.json, trajectory_top.png")
     return 0
 
 
 def main(argv: list[str] | None = None) -> None:
     """``dit-eval`` console entry point: ``trajectory`` (here) or ``depth`` (``train.evaluate.main``)."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    from runtime.errors import split_debug
+
+    args, debug = split_debug(list(sys.argv[1:] if argv is None else argv))
     if not args or args[0] not in ("trajectory", "depth"):
-        sys.exit(_EVAL_USAGE)
+        print(_EVAL_USAGE, file=sys.stderr)
+        sys.exit(2)
     if args[0] == "trajectory":
-        code = _eval_trajectory(args[1:])
+        code = _eval_trajectory(args[1:], debug)
         if code:
             sys.exit(code)
         return

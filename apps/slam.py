@@ -5,21 +5,28 @@
              [dense=true [model=DIR] [dense_settings.x=...]]
 
 With no ``sequence`` it renders the default synthetic sequence (``sim`` settings of the config) into a cache
-folder once and runs on it. Libraries raise; this entry point turns expected failures into one clear message
-and exit status 2.
+folder once and runs on it. The default ``out`` is ``outputs/slam/<sequence folder name>-<8 hex digits of its
+absolute path>``, so two sequences with the same folder name never share it. ``out`` is checked (writable, not a
+file) before any work, and the outputs of an earlier run there are removed first (the command says which).
+Ctrl-C or SIGTERM stops after the current frame and writes everything processed so far (``"complete": false``
+in ``metrics.json``; exit status 130 or 143).
+
+Libraries raise; this entry point turns expected failures into one line naming the problem and exit status 2
+(``--debug`` or ``HYDRA_FULL_ERROR=1`` also prints the traceback).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import sys
 from pathlib import Path
 
-__all__ = ["main"]
+from runtime.errors import EXPECTED, UsageError, report, split_debug
 
+__all__ = ["default_out", "main"]
 
-class UsageError(Exception):
-    """An expected failure of the command (bad setting, unreadable input): one line, exit status 2."""
+EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 
 
 def _setup_logging(cfg) -> None:
@@ -52,7 +59,7 @@ def _settings(cfg):
         raise UsageError(f"bad setting: {e}") from e
     model_dir = Path(str(cfg.model)).expanduser() if cfg.get("model") is not None else default_model_dir()
     try:
-        DepthNetwork(model_dir)  # fail before the run, naming the problem
+        DepthNetwork(model_dir).check_runtime()  # fail before the run, naming the problem
     except (ModelError, OSError) as e:
         raise UsageError(f"cannot load the depth model: {e}") from e
     return slam_cfg, dense_cfg, model_dir
@@ -90,11 +97,38 @@ def _sequence(cfg):
         raise UsageError(f"cannot read the sequence: {e}") from e
 
 
+def default_out(root: str | Path) -> Path:
+    """``outputs/slam/<folder name>-<8 hex digits of the absolute path>``: unique per sequence."""
+    root = Path(root).resolve()
+    tag = hashlib.sha1(str(root).encode()).hexdigest()[:8]
+    return Path("outputs") / "slam" / f"{root.name or 'sequence'}-{tag}"
+
+
+def _check_args(cfg) -> None:
+    """Settings of the command itself, checked before any work."""
+    if str(cfg.viz) not in ("none", "rerun"):
+        raise UsageError(f"viz={cfg.viz!r}: expected none or rerun")
+    if str(cfg.viz) == "rerun":
+        try:
+            import rerun  # noqa: F401
+        except ImportError as e:
+            raise UsageError(f"viz=rerun needs rerun-sdk (pip install rerun-sdk): {e}") from e
+    mf = cfg.max_frames
+    if mf is not None and (isinstance(mf, bool) or not isinstance(mf, int) or mf < 1):
+        raise UsageError(f"max_frames={mf!r}: expected a positive number of frames or null (all)")
+
+
 def _summary(m: dict, out: Path, dense: bool) -> str:
-    lines = [
-        f"  frames {m['frames']} (with pose {m['frames_with_pose']}), keyframes {m['keyframes']}, "
-        f"map points {m['map_points']}, {m['fps']:.1f} frames/s",
-    ]
+    lines = []
+    if not m.get("complete", True):
+        lines.append(
+            f"  INTERRUPTED ({m.get('interrupted_by')}) after {m['frames_processed']} of {m['frames']} frames: "
+            'the outputs hold what was processed ("complete": false in metrics.json)'
+        )
+    lines.append(
+        f"  frames {m.get('frames_processed', m['frames'])} (with pose {m['frames_with_pose']}), keyframes "
+        f"{m['keyframes']}, map points {m['map_points']}, {m['fps']:.1f} frames/s"
+    )
     if "ate_se3_rmse_m" in m:
         lines.append(
             f"  ATE RMSE {m['ate_se3_rmse_m']:.4f} m (SE3), {m['ate_sim3_rmse_m']:.4f} m (Sim3, scale "
@@ -112,20 +146,31 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
         )
     if dense:
         lines.append(f"  wrote {out}/{{dense_map.ply, keyframe_depth/}} ({m.get('dense_map_points', 0)} points)")
-    lines.append(f"  wrote {out}/{{trajectory.txt, keyframes.txt, sparse_map.ply, metrics.json, trajectory_top.png}}")
+    names = ("trajectory.txt", "keyframes.txt", "sparse_map.ply", "metrics.json", "trajectory_top.png", "slam.rrd")
+    lines.append(f"  wrote {out}/{{{', '.join(n for n in names if (out / n).exists())}}}")
     return "\n".join(lines)
 
 
 def run(cfg) -> int:
     """Run ``dit-slam`` with a composed config; returns the exit status."""
     _setup_logging(cfg)
+    from runtime.outputs import check_writable, prepare_run_dir
     from runtime.run import run_sequence
 
+    _check_args(cfg)
+    if cfg.out is not None:
+        check_writable(Path(str(cfg.out)))
     slam_cfg, dense_cfg, model_dir = _settings(cfg)
     seq = _sequence(cfg)
-    out = Path(str(cfg.out)) if cfg.out is not None else Path("outputs") / "slam" / (Path(seq.root).name or "sequence")
+    out = Path(str(cfg.out)) if cfg.out is not None else default_out(seq.root)
+    run_id, removed, previous = prepare_run_dir(out)
+    if removed:
+        print(
+            f"dit-slam: removed the outputs of the earlier run {previous or '(unknown)'} in {out}: {', '.join(removed)}"
+        )
     n = len(seq) if cfg.max_frames is None else min(len(seq), int(cfg.max_frames))
     print(f"dit-slam: {seq.root} ({n} frames, {'with' if seq.gt is not None else 'no'} ground truth) -> {out}")
+    print(f"dit-slam: run {run_id}")
     try:
         m = run_sequence(
             seq,
@@ -136,10 +181,13 @@ def run(cfg) -> int:
             viz=None if str(cfg.viz) == "none" else str(cfg.viz),
             dense=dense_cfg,
             model_dir=model_dir,
+            run_id=run_id,
         )
     except ImportError as e:  # e.g. viz=rerun without rerun-sdk
         raise UsageError(str(e)) from e
     print(_summary(m, out, dense_cfg is not None))
+    if not m.get("complete", True):
+        return EXIT_SIGNAL.get(str(m.get("interrupted_by")), 130)
     return 1 if m.get("error") else 0
 
 
@@ -147,21 +195,23 @@ def main(argv: list[str] | None = None) -> None:
     """``dit-slam`` console entry point (Hydra overrides of ``conf/slam/slam.yaml``)."""
     import hydra
 
-    args = list(sys.argv[1:] if argv is None else argv)
+    args, debug = split_debug(list(sys.argv[1:] if argv is None else argv))
     status = {"code": 0}
 
     @hydra.main(version_base="1.3", config_path="pkg://conf.slam", config_name="slam")
     def _run(cfg) -> None:
         try:
             status["code"] = run(cfg)
-        except UsageError as e:
-            print(f"dit-slam: {e}", file=sys.stderr)
-            status["code"] = 2
+        except EXPECTED as e:  # UsageError, a library's ValueError/OSError naming the problem
+            status["code"] = report("dit-slam", e, debug)
 
     saved = sys.argv
     sys.argv = [Path(saved[0]).name if saved else "dit-slam", *args]
     try:
         _run()
+    except KeyboardInterrupt:  # before or after the frame loop (which stops cleanly itself)
+        print('dit-slam: interrupted; outputs of a started run are marked "complete": false', file=sys.stderr)
+        status["code"] = 130
     finally:
         sys.argv = saved
     if status["code"]:

@@ -2,11 +2,16 @@
 
 A run directory looks like ``<run>/.hydra/config.yaml`` + ``<run>/checkpoints/*.ckpt``; the network is the
 config's ``model.net`` node (``_target_: models.build_model``) and the weights are the checkpoint's
-``state_dict`` entries under ``net.``.
+``state_dict`` entries under ``net.``. A checkpoint that stores its own ``net_config`` (``train/module.py`` does)
+is built from that; when the run directory's config says otherwise (e.g. the run directory was reused for
+another model) a warning names both.
 """
 
 from __future__ import annotations
 
+import logging
+import pickle
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +21,8 @@ from omegaconf import OmegaConf
 from torch import nn
 
 import models
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -35,8 +42,7 @@ def find_run_config(ckpt: Path) -> Path:
         if candidate.is_file():
             return candidate
     raise FileNotFoundError(
-        f"{ckpt}: no .hydra/config.yaml in the run directory above it (was it written by "
-        "python train/fit.py?)"
+        f"{ckpt}: no .hydra/config.yaml in the run directory above it (was it written by python train/fit.py?)"
     )
 
 
@@ -54,16 +60,34 @@ def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
     target = net_cfg.pop("_target_", None)
     if target != "models.build_model":
         raise ValueError(f"{cfg_path}: model.net._target_ is {target!r}, expected 'models.build_model'")
-    net = models.build_model(**net_cfg)
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state = _read_checkpoint(ckpt)
+    own = state.get("net_config") if isinstance(state, dict) else None
+    if isinstance(own, dict) and own:
+        own = {k: v for k, v in own.items() if k != "_target_"}
+        if own != net_cfg:
+            diff = sorted(k for k in set(own) | set(net_cfg) if own.get(k) != net_cfg.get(k))
+            log.warning(
+                "%s: the checkpoint was trained with %s, but %s says %s; using the checkpoint's own",
+                ckpt,
+                {k: own.get(k) for k in diff},
+                cfg_path,
+                {k: net_cfg.get(k) for k in diff},
+            )
+        net_cfg = own
+    try:
+        net = models.build_model(**net_cfg)
+    except TypeError as e:
+        raise ValueError(f"{ckpt}: cannot build the network from {net_cfg}: {e}") from e
     weights = {k[len("net.") :]: v for k, v in state.get("state_dict", {}).items() if k.startswith("net.")}
     if not weights:
         raise ValueError(f"{ckpt}: no 'net.*' weights in its state_dict")
-    missing, unexpected = net.load_state_dict(weights, strict=False)
+    try:
+        missing, unexpected = net.load_state_dict(weights, strict=False)
+    except RuntimeError as e:  # shape mismatches ("size mismatch for ...")
+        first = next((ln.strip() for ln in str(e).splitlines() if "size mismatch" in ln), str(e).splitlines()[0])
+        raise ValueError(f"{ckpt}: weights do not fit the network of {net_cfg} ({first})") from e
     if missing or unexpected:
-        raise ValueError(
-            f"{ckpt}: weights do not match {net_cfg} (missing {missing[:5]}, unexpected {unexpected[:5]})"
-        )
+        raise ValueError(f"{ckpt}: weights do not match {net_cfg} (missing {missing[:5]}, unexpected {unexpected[:5]})")
     train_cfg = OmegaConf.to_container(cfg, resolve=False)
     return LoadedCheckpoint(
         net.eval(),
@@ -76,9 +100,18 @@ def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
     )
 
 
-def validation_inputs(
-    loaded: LoadedCheckpoint, root: str | Path, n: int, seed: int = 0
-) -> list[torch.Tensor]:
+def _read_checkpoint(ckpt: Path) -> dict:
+    """``torch.load`` of a checkpoint; a truncated or foreign file raises ValueError naming it."""
+    try:
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    except (RuntimeError, EOFError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError, OSError) as e:
+        raise ValueError(f"{ckpt}: not a readable checkpoint (truncated or not written by torch?): {e}") from e
+    if not isinstance(state, dict):
+        raise ValueError(f"{ckpt}: not a training checkpoint (got {type(state).__name__})")
+    return state
+
+
+def validation_inputs(loaded: LoadedCheckpoint, root: str | Path, n: int, seed: int = 0) -> list[torch.Tensor]:
     """Up to ``n`` network inputs from NYU-layout validation frames (resize + centre crop; 125 sparse samples
     of the ground truth for the ``*s`` modalities), for the parity check on realistic data."""
     from runtime.geometry import NetworkMapping

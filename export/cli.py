@@ -1,4 +1,9 @@
-"""``dit-export ckpt=PATH out=DIR``: a training checkpoint -> prior.onnx + decoder.onnx + manifest.json."""
+"""``dit-export ckpt=PATH out=DIR``: a training checkpoint -> prior.onnx + decoder.onnx + manifest.json.
+
+The model is written into a temporary folder and renamed into place (:func:`export.onnx.export_network`).
+Expected failures print one line and exit with status 2; ``--debug`` or ``HYDRA_FULL_ERROR=1`` adds the
+traceback.
+"""
 
 from __future__ import annotations
 
@@ -42,9 +47,7 @@ def run(cfg: DictConfig) -> dict:
         source=str(ckpt),
     )
     p = manifest["parity"]
-    print(
-        f"wrote {Path(cfg.out) / 'prior.onnx'}, {Path(cfg.out) / 'decoder.onnx'}, {Path(cfg.out) / 'manifest.json'}"
-    )
+    print(f"wrote {Path(cfg.out) / 'prior.onnx'}, {Path(cfg.out) / 'decoder.onnx'}, {Path(cfg.out) / 'manifest.json'}")
     print(
         f"model {manifest['model']} / {manifest['modality']} {manifest['height']}x{manifest['width']}, "
         f"code {manifest['code_dim']}; parity on {p['inputs']} inputs at batch 1 and 8: "
@@ -53,13 +56,38 @@ def run(cfg: DictConfig) -> dict:
     return manifest
 
 
+_DEBUG = {"on": False}
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="export")
 def _main(cfg: DictConfig) -> None:
+    from runtime.errors import EXPECTED, report
+
     try:
         run(cfg)
-    except (FileNotFoundError, ValueError, RuntimeError) as e:
-        sys.exit(f"dit-export: {e}")
+    except (*EXPECTED, RuntimeError) as e:  # RuntimeError: onnx.checker or the parity check refused the graphs
+        sys.exit(report("dit-export", e, _DEBUG["on"]))
+    except KeyboardInterrupt:
+        print(f"dit-export: interrupted; {cfg.out} was left as it was", file=sys.stderr)
+        sys.exit(130)
+
+
+def _sigterm(signum, frame) -> None:
+    raise KeyboardInterrupt("SIGTERM")
 
 
 def main() -> None:
-    _main()
+    import signal
+
+    from runtime.errors import split_debug
+
+    signal.signal(signal.SIGTERM, _sigterm)  # clean up the temporary folder as on Ctrl-C
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # also when started with SIGINT ignored (a background job)
+
+    saved = sys.argv
+    args, _DEBUG["on"] = split_debug(saved[1:])
+    sys.argv = [saved[0], *args]
+    try:
+        _main()
+    finally:
+        sys.argv = saved

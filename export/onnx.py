@@ -6,12 +6,18 @@ The exported modules are tensors in, tensors out (STYLE.md "Export"):
   ``*s`` modalities) -> ``uncertainty`` [1, 1, H, W] (metres) and the conditioning features ``feat0 .. featN``.
 * ``decoder.onnx``: ``code`` [B, C] + ``feat0 .. featN`` (batch 1, broadcast inside) -> ``depth`` [B, 1, H, W] (metres).
   The batch is symbolic: the runtime sends 1 code, or 8 perturbed codes for the finite-difference Jacobian (Eq. 17).
+
+The export is written into a hidden temporary folder beside ``out_dir`` and renamed into place only when both
+graphs passed the checks, so an interrupted export never leaves a mixed model. ``manifest.json`` records each
+ONNX file's SHA-256 and a run id, which :class:`runtime.network.DepthNetwork` verifies at load.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -21,7 +27,8 @@ from torch import nn
 
 log = logging.getLogger(__name__)
 
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2  # 2: file hashes and run id
+EXPORT_FILES = ("prior.onnx", "decoder.onnx", "manifest.json")
 PARITY_TOLERANCE_M = 1e-4
 DEFAULT_DELTA = 1e-2
 
@@ -69,9 +76,7 @@ def git_sha() -> str | None:
         return None
 
 
-def _export(
-    module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_shapes, opset: int
-):
+def _export(module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_shapes, opset: int):
     torch.onnx.export(
         module,
         args,
@@ -172,17 +177,75 @@ def export_network(
     Raises:
         ValueError: the net has no code (``fastdepth``) or the sizes are not multiples of 32.
         RuntimeError: ``onnx.checker`` rejects a graph or the parity exceeds ``PARITY_TOLERANCE_M``.
+        FileExistsError: ``out_dir`` is a file or holds files that are not an earlier export.
     """
-    import onnx
-    import onnxruntime as ort
-
     if not hasattr(net, "decoder") or not hasattr(net, "prior"):
         raise ValueError(f"{type(net).__name__} has no depth code (prior/decoder): only CVAE models export")
     if height % 32 or width % 32:
         raise ValueError(f"network size {height}x{width} is not a multiple of 32")
-    net = net.eval().float()
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    from runtime.network import file_sha256
+    from runtime.outputs import new_run_id
+
+    out_final = Path(out_dir)
+    _check_out(out_final)
+    run_id = new_run_id()
+    stage = out_final.parent / f".{out_final.name}.partial-{run_id}"
+    stage.mkdir(parents=True)
+    try:
+        manifest = _export_into(
+            net.eval().float(), stage, modality, height, width, opset, delta, n_parity, parity_inputs, source
+        )
+        manifest.update(run_id=run_id, train_config=train_config)
+        if extra:
+            manifest.update(extra)
+        manifest["files"] = {
+            p.name: {"sha256": file_sha256(p), "bytes": p.stat().st_size}
+            for p in (stage / "prior.onnx", stage / "decoder.onnx")
+        }
+        (stage / "manifest.json").write_text(json.dumps(manifest, indent=2))
+        _swap_into_place(stage, out_final)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    return manifest
+
+
+def _check_out(out: Path) -> None:
+    """``out`` may be new, empty or an earlier export (its other files are kept); anything else is refused."""
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"out={out} is a file, not a folder")
+    if not out.is_dir() or not any(not p.name.startswith(".") for p in out.iterdir()):
+        return  # new, or empty but for hidden entries (Hydra's .export/ log folder)
+    try:
+        ours = json.loads((out / "manifest.json").read_text()).get("format") == "dit-slam-depth-network"
+    except (OSError, ValueError, AttributeError):
+        ours = False
+    if not ours:
+        raise FileExistsError(f"out={out} holds files that dit-export did not write (no manifest.json); choose another")
+
+
+def _swap_into_place(stage: Path, out: Path) -> None:
+    """Rename the finished ``stage`` folder to ``out``; an earlier export there is replaced as a whole (its other
+    files, e.g. a README, are moved into the new folder first). A reader sees the old model, the new one, or
+    briefly none, never a mix."""
+    if out.is_dir():
+        for p in out.iterdir():
+            if p.name not in EXPORT_FILES and not (stage / p.name).exists():
+                os.replace(p, stage / p.name)
+        old = out.parent / f".{out.name}.old-{stage.name.rsplit('partial-', 1)[-1]}"
+        os.replace(out, old)
+        os.replace(stage, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(stage, out)
+
+
+def _export_into(net, out_dir: Path, modality, height, width, opset, delta, n_parity, parity_inputs, source) -> dict:
+    """The two graphs, their checks and the manifest (without hashes) in ``out_dir``."""
+    import onnx
+    import onnxruntime as ort
+
     in_channels = int(net.in_channels)
     code_dim = int(net.code_dim)
     image = example_inputs(in_channels, height, width, 1, seed=123)[0]
@@ -190,15 +253,11 @@ def export_network(
         _, feats = net.prior(image)
     n_feat = len(feats)
     if n_feat != DecoderGraph.N_FEATURES:
-        raise ValueError(
-            f"the decoder takes {n_feat} features; the exporter handles {DecoderGraph.N_FEATURES}"
-        )
+        raise ValueError(f"the decoder takes {n_feat} features; the exporter handles {DecoderGraph.N_FEATURES}")
     feat_names = [f"feat{i}" for i in range(n_feat)]
 
     prior_path, decoder_path = out_dir / "prior.onnx", out_dir / "decoder.onnx"
-    _export(
-        PriorGraph(net).eval(), (image,), prior_path, ["image"], ["uncertainty", *feat_names], None, opset
-    )
+    _export(PriorGraph(net).eval(), (image,), prior_path, ["image"], ["uncertainty", *feat_names], None, opset)
     batch = torch.export.Dim("batch", min=1, max=256)
     codes = torch.zeros(8, code_dim)  # traced at B = 8, the Jacobian batch
     _export(
@@ -220,9 +279,7 @@ def export_network(
             raise RuntimeError(f"onnx.checker rejected {p}: {e}") from e
         opsets[p.name] = max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
 
-    inputs = (
-        parity_inputs if parity_inputs is not None else example_inputs(in_channels, height, width, n_parity)
-    )
+    inputs = parity_inputs if parity_inputs is not None else example_inputs(in_channels, height, width, n_parity)
     parity = parity_check(net, prior_path, decoder_path, inputs, code_dim)
     log.info("parity: max |depth_onnx - depth_torch| = %.3g m", parity["max_abs_depth_m"])
     if not parity["max_abs_depth_m"] <= PARITY_TOLERANCE_M:
@@ -261,13 +318,9 @@ def export_network(
         },
         "parity": parity,
         "network": describe,
-        "train_config": train_config,
         "source": source,
         "git_sha": git_sha(),
         "torch_version": torch.__version__,
         "onnxruntime_version": ort.__version__,
     }
-    if extra:
-        manifest.update(extra)
-    (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
     return manifest

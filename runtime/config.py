@@ -1,15 +1,76 @@
-"""Settings from mappings: nested dataclasses built from a dict (e.g. a Hydra config group), checked by key."""
+"""Settings from mappings: nested dataclasses built from a dict (e.g. a Hydra config group), checked by key.
+
+Every numeric setting has a range (:func:`value_range`): the per-class table :data:`RANGES` first, then rules by
+the name (sigmas, tolerances and scales are positive, ratios lie in [0, 1], everything else is non-negative);
+values must be finite. A value outside its range raises ValueError naming the key and the range.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import math
+
+_INF = math.inf
+
+#: ``{class name: {field: (low, high)}}``, inclusive bounds; these win over the name rules of :func:`value_range`.
+RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "FeatureConfig": {
+        "max_features": (1, _INF),
+        "grid_cols": (1, 1000),
+        "grid_rows": (1, 1000),
+        "fast_threshold": (0, 255),
+    },
+    "TrackerConfig": {"win_size": (3, 255), "pyr_levels": (0, 10), "max_iter": (1, _INF)},
+    "TriangulationConfig": {"min_views": (2, _INF)},
+    "BackendConfig": {"window_size": (2, _INF), "lm_max_iterations": (1, _INF)},
+    "CoastConfig": {"lm_max_iterations": (1, _INF)},
+    "RelocConfig": {"max_attempts": (0, _INF), "max_hamming": (0, 256), "guided_max_hamming": (0, 256)},
+    "SlamConfig": {"max_track_views": (2, _INF)},
+    "DenseConfig": {"n_code_keyframes": (1, _INF)},
+    "DepthFactorConfig": {"chunk_size": (1, _INF)},
+    "DenseMapConfig": {"stride": (1, _INF)},
+}
+_POSITIVE = ("sigma", "_tol", "eps", "scale", "gravity", "factor", "huber_k", "voxel", "delta")
+_UNIT = ("ratio", "confidence", "quality_level")
+_TINY = 5e-324  # the smallest positive float: "> 0" as an inclusive bound
+
+
+def value_range(cls, name: str) -> tuple[float, float]:
+    """Inclusive ``(low, high)`` of numeric field ``name`` of dataclass ``cls``.
+
+    >>> from runtime.slam import SlamConfig
+    >>> value_range(type(SlamConfig().backend), "window_size")
+    (2, inf)
+    >>> value_range(type(SlamConfig().backend), "pixel_sigma")[0] > 0
+    True
+    """
+    for klass in type.mro(cls):
+        table = RANGES.get(klass.__name__, {})
+        if name in table:
+            return table[name]
+    if any(p in name for p in _POSITIVE):
+        return (_TINY, _INF)
+    if name.endswith(_UNIT):
+        return (0.0, 1.0)
+    return (0, _INF)
+
+
+def _check_range(cls, name: str, v, key: str) -> None:
+    lo, hi = value_range(cls, name)
+    if not math.isfinite(v):
+        raise ValueError(f"setting {key} must be finite, got {v!r}")
+    if not lo <= v <= hi:
+        low = "> 0" if lo == _TINY else f">= {lo:g}"
+        high = "" if hi == _INF else f" and <= {hi:g}"
+        raise ValueError(f"setting {key}={v!r} is out of range: must be {low}{high}")
 
 
 def dataclass_from_dict(cls, d, path: str):
     """Build dataclass ``cls`` from mapping ``d``; nested dataclass fields take nested mappings.
 
-    Unknown keys and values of the wrong kind raise ValueError naming the key (``path.key``); numbers are cast
-    to the default's type (an integer field refuses 2.5).
+    Unknown keys, values of the wrong kind and numbers outside their range (:func:`value_range`) raise
+    ValueError naming the key (``path.key``); numbers are cast to the default's type (an integer field refuses
+    2.5).
 
     >>> from dataclasses import dataclass
     >>> @dataclass
@@ -30,6 +91,8 @@ def dataclass_from_dict(cls, d, path: str):
             kwargs[k] = dataclass_from_dict(type(default), v, f"{path}.{k}")
         else:
             kwargs[k] = _checked(default, v, f"{path}.{k}")
+            if isinstance(kwargs[k], (int, float)) and not isinstance(kwargs[k], bool):
+                _check_range(cls, k, kwargs[k], f"{path}.{k}")
     return cls(**kwargs)
 
 

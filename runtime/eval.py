@@ -18,12 +18,14 @@ from runtime.geometry import interpolate_poses, ns_to_s
 
 log = logging.getLogger(__name__)
 
+MAX_TUM_SECONDS = 1e11  # a TUM time beyond this (year 5138) is not seconds: nanoseconds written as seconds?
+OFFSET_WARN_S = 0.02  # a best time offset at least this large (and clearly better) is reported as a warning
+
+
 def _traj(ts_ns: np.ndarray, T: np.ndarray):
     from evo.core.trajectory import PoseTrajectory3D
 
-    return PoseTrajectory3D(
-        poses_se3=list(np.asarray(T, dtype=np.float64)), timestamps=ns_to_s(np.asarray(ts_ns))
-    )
+    return PoseTrajectory3D(poses_se3=list(np.asarray(T, dtype=np.float64)), timestamps=ns_to_s(np.asarray(ts_ns)))
 
 
 def trajectory_metrics(
@@ -54,10 +56,14 @@ def trajectory_metrics(
         raise ValueError(f"estimate has {est_ts.size} timestamps but poses of shape {est_T.shape}")
     ref_T, inside = interpolate_poses(est_ts, gt_ts, gt_T)
     if inside.sum() < 3:
-        raise ValueError(f"only {int(inside.sum())} estimated poses lie within the ground truth's time range")
+        raise ValueError(
+            f"only {int(inside.sum())} estimated poses lie within the ground truth's time range (estimate "
+            f"{ns_to_s(est_ts[0]):.3f}..{ns_to_s(est_ts[-1]):.3f} s, ground truth {ns_to_s(gt_ts[0]):.3f}.."
+            f"{ns_to_s(gt_ts[-1]):.3f} s; same clock and unit?)"
+        )
     ts = est_ts[inside]
     est = _traj(ts, est_T[inside])
-    ref = _traj(ts, ref_T)
+    ref = _traj(ts, ref_T[inside])
     out: dict = {"eval_frames": int(ts.size), "path_length_m": float(ref.path_length)}
 
     est_se3 = copy.deepcopy(est)
@@ -84,9 +90,7 @@ def trajectory_metrics(
     if ts.size > delta + 1:
         rpe_t = metrics.RPE(metrics.PoseRelation.translation_part, delta, metrics.Unit.frames, all_pairs=True)
         rpe_t.process_data((ref, est))
-        rpe_r = metrics.RPE(
-            metrics.PoseRelation.rotation_angle_deg, delta, metrics.Unit.frames, all_pairs=True
-        )
+        rpe_r = metrics.RPE(metrics.PoseRelation.rotation_angle_deg, delta, metrics.Unit.frames, all_pairs=True)
         rpe_r.process_data((ref, est))
         out.update(
             rpe_trans_rmse_m=rpe_t.get_statistic(metrics.StatisticsType.rmse),
@@ -164,4 +168,83 @@ def load_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if p.suffix == ".csv":
         gt = read_groundtruth(p)
         return gt.ts, gt.T_w_b
+    _check_tum_seconds(p)
     return read_tum(p)
+
+
+def _check_tum_seconds(p: Path) -> None:
+    """Refuse a TUM file whose first timestamp cannot be seconds (e.g. EuRoC nanoseconds)."""
+    with open(p) as f:
+        for n, line in enumerate(f, 1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            try:
+                t = float(line.replace(",", " ").split()[0])
+            except ValueError:
+                return  # the reader names the bad line
+            if abs(t) > MAX_TUM_SECONDS:
+                raise ValueError(
+                    f"{p}:{n}: timestamp {line.split()[0]} is not in seconds (nanoseconds?); TUM files hold "
+                    "seconds: divide the first column by 1e9"
+                )
+            return
+
+
+def _umeyama_rmse(a: np.ndarray, b: np.ndarray) -> float:
+    """RMSE of positions ``a`` (N, 3) after the best rigid (SE(3)) alignment onto ``b`` (N, 3)."""
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ S @ Vt
+    return float(np.sqrt(np.mean(np.sum((b - (a - ca) @ R.T - cb) ** 2, 1))))
+
+
+def best_time_offset(
+    est_ts: np.ndarray, est_T: np.ndarray, gt_ts: np.ndarray, gt_T: np.ndarray, max_s: float = 1.0
+) -> dict:
+    """The time offset ``d`` [s] for which the estimate at ``t`` best matches the ground truth at ``t + d``.
+
+    Searches ``|d| <= max_s`` on a 20 ms grid, then 2 ms around the best, by the SE(3)-aligned position RMSE.
+
+    Returns:
+        ``{"time_offset_s", "ate_se3_rmse_at_offset_m", "ate_se3_rmse_at_zero_m"}``, or ``{}`` when fewer than
+        3 poses overlap the ground truth.
+    """
+    est_ts = np.asarray(est_ts, np.int64)
+    p_est = np.asarray(est_T, np.float64)[:, :3, 3]
+
+    def rmse(d: float) -> float:
+        ref, inside = interpolate_poses(est_ts + int(round(d * 1e9)), gt_ts, gt_T)
+        return _umeyama_rmse(p_est[inside], ref[inside, :3, 3]) if inside.sum() >= 3 else float("inf")
+
+    zero = rmse(0.0)
+    if not np.isfinite(zero):
+        return {}
+    grid = np.arange(-max_s, max_s + 1e-9, 0.02)
+    best = float(grid[int(np.argmin([rmse(d) for d in grid]))])
+    fine = np.arange(best - 0.02, best + 0.02 + 1e-9, 0.002)
+    errs = [rmse(d) for d in fine]
+    best = float(fine[int(np.argmin(errs))])
+    return {
+        "time_offset_s": round(best, 4),
+        "ate_se3_rmse_at_offset_m": float(min(errs)),
+        "ate_se3_rmse_at_zero_m": zero,
+    }
+
+
+def evaluation_warnings(m: dict, n_est: int) -> list[str]:
+    """Warnings for metrics ``m`` of an estimate of ``n_est`` poses: dropped poses, a time offset."""
+    out = []
+    dropped = n_est - int(m.get("eval_frames", n_est))
+    if dropped:
+        out.append(
+            f"{dropped} of {n_est} estimated poses lie outside the ground truth's time range and were not evaluated"
+        )
+    d = m.get("time_offset_s")
+    if d is not None and abs(d) >= OFFSET_WARN_S and m["ate_se3_rmse_at_offset_m"] < 0.8 * m["ate_se3_rmse_at_zero_m"]:
+        out.append(
+            f"the estimate matches the ground truth best {d:+.3f} s later (ATE {m['ate_se3_rmse_at_offset_m']:.4f} m "
+            f"there against {m['ate_se3_rmse_at_zero_m']:.4f} m): are the clocks offset?"
+        )
+    return out

@@ -1,6 +1,8 @@
 """The exported depth network under ONNX Runtime (no torch): prior, decoder and the code Jacobian (Eq. 17).
 
 A model directory holds ``prior.onnx``, ``decoder.onnx`` and ``manifest.json`` (written by ``dit-export``).
+The manifest records each ONNX file's SHA-256 and the export's run id; a folder whose files do not match their
+manifest (e.g. one graph of another export) is refused at load.
 
 >>> net = DepthNetwork("models/default")                          # doctest: +SKIP
 >>> kf = net.prior(grey_224, sparse_224)                          # doctest: +SKIP
@@ -9,7 +11,9 @@ A model directory holds ``prior.onnx``, ``decoder.onnx`` and ``manifest.json`` (
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +21,40 @@ from pathlib import Path
 import numpy as np
 
 MODALITY_CHANNELS = {"rgb": 3, "rgbs": 4, "gray": 1, "grays": 2}
+RUNTIME_MODALITIES = ("gray", "grays")  # the SLAM runtime feeds grey cam0 images (runtime.dense.DenseMapper)
+
+log = logging.getLogger(__name__)
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes (read in 1 MiB blocks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def verify_files(model_dir: Path, manifest: dict) -> None:
+    """Check every file of the manifest's ``files`` (``{name: {"sha256": ...}}``) against its SHA-256.
+
+    Raises:
+        ModelError: a file is missing or its bytes differ from the export that wrote the manifest.
+    """
+    files = manifest.get("files")
+    run = manifest.get("run_id", "?")
+    if not files:
+        log.warning("%s: manifest.json has no file hashes (written before they were added): not verified", model_dir)
+        return
+    for name, rec in files.items():
+        p = model_dir / name
+        if not p.is_file():
+            raise ModelError(f"{p}: missing (manifest.json of export {run} lists it)")
+        if file_sha256(p) != rec.get("sha256"):
+            raise ModelError(
+                f"{p}: SHA-256 does not match manifest.json (export {run}): the folder mixes files of different "
+                "exports or a file was changed; export the model again"
+            )
 
 
 def default_model_dir() -> Path:
@@ -104,9 +142,9 @@ class DepthNetwork:
         self.in_channels = int(m["in_channels"])
         self.delta = float(m["jacobian"]["delta"])
         if MODALITY_CHANNELS.get(self.modality) != self.in_channels:
-            raise ModelError(
-                f"{manifest_path}: modality {self.modality!r} with {self.in_channels} input channels"
-            )
+            raise ModelError(f"{manifest_path}: modality {self.modality!r} with {self.in_channels} input channels")
+        verify_files(self.dir, m)
+        self.run_id = m.get("run_id")
         self.session_config = session or SessionConfig()
         self._prior = _session(self.dir / m["prior"]["file"], self.session_config)
         self._decoder = _session(self.dir / m["decoder"]["file"], self.session_config)
@@ -118,6 +156,12 @@ class DepthNetwork:
         dec_feats = [i.name for i in self._decoder.get_inputs()[1:]]
         if dec_feats != self.feature_names:
             raise ModelError(f"{self.dir}: decoder takes {dec_feats}, prior gives {self.feature_names}")
+        image_shape = [d if isinstance(d, int) else "?" for d in self._prior.get_inputs()[0].shape]
+        if image_shape[1:] != [self.in_channels, self.height, self.width]:
+            raise ModelError(
+                f"{self.dir / m['prior']['file']}: input shape {image_shape} does not match the manifest's "
+                f"{self.in_channels} channels of {self.height}x{self.width}"
+            )
         self.decoder_calls = 0  # counts ORT decoder runs (tests and benchmarks read it)
 
     @property
@@ -129,9 +173,19 @@ class DepthNetwork:
         if modality is not None and modality != self.modality:
             raise ModelError(f"{self.dir}: model is {self.modality!r}, the caller needs {modality!r}")
         if size is not None and tuple(size) != (self.height, self.width):
+            raise ModelError(f"{self.dir}: model is {self.height}x{self.width}, the caller needs {size[0]}x{size[1]}")
+
+    def check_runtime(self) -> DepthNetwork:
+        """Raise :class:`ModelError` unless the SLAM runtime can feed this model (grey images, network size a
+        multiple of 32); returns ``self``."""
+        if self.modality not in RUNTIME_MODALITIES:
             raise ModelError(
-                f"{self.dir}: model is {self.height}x{self.width}, the caller needs {size[0]}x{size[1]}"
+                f"{self.dir}: model modality is {self.modality!r}; dit-slam feeds grey images and needs one of "
+                f"{', '.join(RUNTIME_MODALITIES)}"
             )
+        if self.height % 32 or self.width % 32 or self.height <= 0 or self.width <= 0:
+            raise ModelError(f"{self.dir}: network size {self.height}x{self.width} is not a multiple of 32")
+        return self
 
     # ------------------------------------------------------------------ inputs
     def make_input(self, image: np.ndarray, sparse: np.ndarray | None = None) -> np.ndarray:
@@ -151,18 +205,14 @@ class DepthNetwork:
         if want_rgb and not (img.ndim == 3 and img.shape[2] == 3):
             raise ModelError(f"model {self.modality!r} needs an RGB image (H, W, 3), got shape {img.shape}")
         if img.shape[:2] != (self.height, self.width):
-            raise ModelError(
-                f"image is {img.shape[1]}x{img.shape[0]}, the model takes {self.width}x{self.height}"
-            )
+            raise ModelError(f"image is {img.shape[1]}x{img.shape[0]}, the model takes {self.width}x{self.height}")
         chans = [img.transpose(2, 0, 1)] if img.ndim == 3 else [img[None]]
         if self.uses_sparse:
             if sparse is None:
                 raise ModelError(f"model {self.modality!r} needs a sparse depth image")
             sp = np.asarray(sparse, np.float32)
             if sp.shape != (self.height, self.width):
-                raise ModelError(
-                    f"sparse depth has shape {sp.shape}, the model takes {(self.height, self.width)}"
-                )
+                raise ModelError(f"sparse depth has shape {sp.shape}, the model takes {(self.height, self.width)}")
             if not np.isfinite(sp).all():
                 raise ModelError("sparse depth has non-finite values")
             chans.append(sp[None])
@@ -171,9 +221,7 @@ class DepthNetwork:
         return np.ascontiguousarray(np.concatenate(chans, 0)[None])
 
     # ------------------------------------------------------------------ graphs
-    def prior(
-        self, image: np.ndarray, sparse: np.ndarray | None = None, cache_size: int = 4
-    ) -> KeyframeDepth:
+    def prior(self, image: np.ndarray, sparse: np.ndarray | None = None, cache_size: int = 4) -> KeyframeDepth:
         """Run ``prior.onnx`` once for a keyframe; the result decodes codes and caches them."""
         outs = self._prior.run(None, {"image": self.make_input(image, sparse)})
         feed = dict(zip(self.feature_names, outs[1:], strict=True))

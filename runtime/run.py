@@ -4,12 +4,19 @@ Outputs in ``out_dir``: ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initi
 :meth:`runtime.slam.SlamSystem.trajectory`), ``keyframes.txt``, ``sparse_map.ply``, ``metrics.json``,
 ``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``. With a dense configuration
 (:mod:`runtime.dense`) also ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics.
+
+The earlier run's outputs in ``out_dir`` are removed first and ``metrics.json`` is written at once as a stub
+with ``"complete": false`` (:mod:`runtime.outputs`); the files are written atomically. SIGINT (Ctrl-C) or
+SIGTERM during the frame loop stops after the current frame and writes everything processed so far, with
+``"complete": false`` and ``"interrupted_by"`` in ``metrics.json``; a second signal aborts at once.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import signal
+import threading
 import time
 from collections import deque
 from dataclasses import asdict
@@ -18,7 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from runtime.geometry import ns_to_s
+from runtime.image_check import ImageCheck
 from runtime.live import LiveSlam
+from runtime.outputs import atomic_text, atomic_write, prepare_run_dir
 from runtime.slam import SlamConfig, SlamSystem
 
 log = logging.getLogger(__name__)
@@ -36,6 +45,7 @@ def run_sequence(
     model_dir: str | Path | None = None,
     depth_source=None,
     probe=None,
+    run_id: str | None = None,
 ) -> dict:
     """Run the system over an io ``EurocSequence`` and write every output into ``out_dir``.
 
@@ -44,33 +54,50 @@ def run_sequence(
     dense metrics (depth metrics of the sparse points, the c = 0 prior and the optimised codes when the
     sequence has ``mav0/depth0``); None: the sparse system. ``depth_source`` and ``probe``: diagnostics injected
     into the dense mapper (:class:`runtime.dense.DenseMapper`; e.g. the rendered depth in place of the network,
-    :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`).
+    :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`). ``run_id``: the id of
+    :func:`runtime.outputs.prepare_run_dir` when the caller prepared ``out_dir`` already (None: prepare it here).
 
     Returns:
         The metrics dictionary also written to ``metrics.json``.
     """
     cfg = cfg or SlamConfig()
+    if max_frames is not None and int(max_frames) < 1:
+        raise ValueError(f"max_frames must be a positive number of frames or null (all), got {max_frames}")
+    if viz not in (None, "", "none", "rerun"):
+        raise ValueError(f"viz={viz!r} is not 'rerun' or 'none'")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if run_id is None:
+        run_id = prepare_run_dir(out)[0]
+    with _StopOnSignal() as stop:
+        return _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth_source, probe, run_id, stop)
+
+
+def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth_source, probe, run_id, stop):
     mapper = _make_mapper(seq, dense, model_dir, depth_source, probe) if dense is not None else None
     live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg, dense=mapper)  # the one code path, as live users feed it
     system = live.system
     recorder = _make_recorder(viz, out, seq)
     n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
+    images = ImageCheck()
     t_start, cpu_start = time.perf_counter(), time.process_time()
-    _run_frames(live, seq, n, recorder, progress)
+    done = _run_frames(live, seq, n, recorder, progress, stop, images)
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
     ts, T, pts = _write_trajectory_and_map(system, out)
     metrics = {
+        "run_id": run_id,
+        "complete": done == n,
+        "interrupted_by": stop.signal,
         "sequence": str(getattr(seq, "root", "")),
         "frames": int(n),
+        "frames_processed": int(done),
         "frames_with_pose": int(len(ts)),
         "keyframes": int(len(system.map.history)),
         "map_points": int(pts.shape[0]),
         "wall_s": wall,
-        "fps": n / wall if wall > 0 else float("nan"),
+        "fps": done / wall if wall > 0 else float("nan"),
         "cpu_s": cpu,  # CPU time of the process (all threads): robust to other jobs sharing the machine
-        "cpu_ms_per_frame": 1e3 * cpu / max(n, 1),
+        "cpu_ms_per_frame": 1e3 * cpu / max(done, 1),
+        "image_warnings": images.warnings,
         "timing_ms_per_frame": system.timing_summary(),
         "keyframe_reasons": dict(system.kf_reasons),
         "map_points_refound": system.n_map_matches,
@@ -92,15 +119,44 @@ def run_sequence(
             "optimisation": tm.get("optimize", 0.0) - tm.get("dense_factors", 0.0),
             "outputs_s": time.perf_counter() - t0,
         }
-    if len(ts) == 0:
-        metrics["error"] = f"never initialised ({system.initializer.last_reason or 'no rest and no motion found'})"
-        log.error("never initialised: no trajectory; see the events in metrics.json")
+    if len(ts) == 0 and done == n:
+        why = system.initializer.last_reason or "no rest and no motion found"
+        if not system.events:
+            why += "; no events were logged: check the camera-IMU time overlap"
+        metrics["error"] = f"never initialised ({why})"
+        log.error("never initialised: no trajectory (%s)", why)
     metrics.update(_evaluate(seq, ts, T, out, plot))
     if recorder is not None:
         recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
         recorder.close()
-    (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=2))
+    atomic_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     return metrics
+
+
+class _StopOnSignal:
+    """SIGINT / SIGTERM while active: remember the signal (the frame loop stops after the current frame); a
+    second signal raises KeyboardInterrupt. Only installed in the main thread (signals are delivered there)."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None
+        self._old: dict = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._old[s] = signal.getsignal(s)
+                signal.signal(s, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.signal is not None:
+            raise KeyboardInterrupt(f"second {signal.Signals(signum).name}")
+        self.signal = signal.Signals(signum).name
+        log.warning("%s: stopping after the current frame, writing what was processed", self.signal)
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)
 
 
 def _make_recorder(viz: str | None, out: Path, seq):
@@ -119,28 +175,36 @@ def _make_mapper(seq, dense, model_dir, depth_source, probe):
     from runtime.dense import DenseMapper
     from runtime.network import DepthNetwork, default_model_dir
 
-    net = DepthNetwork(model_dir if model_dir is not None else default_model_dir())
+    net = DepthNetwork(model_dir if model_dir is not None else default_model_dir()).check_runtime()
     depth_gt = seq.depth if getattr(seq, "has_depth", False) else None
     return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
-def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool) -> None:
+def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None) -> int:
     """Feed the first ``n`` frames (images decoded ahead in a thread), each after the IMU samples up to its time,
-    to ``live``; then the IMU samples after the last frame."""
+    to ``live``, until ``stop.signal`` is set; then the IMU samples after the last frame. ``images``: an
+    :class:`ImageCheck` that looks at the images. Returns the number of frames processed."""
     system, k = live.system, 0
     bar = None
+    done = 0
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=n, unit="frame", desc="dit-slam", dynamic_ncols=True)
     for i, img, err, t_wait in _prefetched_images(seq, n):
+        if stop is not None and stop.signal is not None:
+            break
         ts = int(seq.frame_ts[i])
         if err is not None:
             system.event(ts, f"frame {i}: cannot read image ({err})")
+        if images is not None and img is not None:
+            for msg in images.look(i, img, seq):
+                system.event(ts, msg)
         system.timers["read"] += t_wait
         k = _feed_imu(live, seq, k, ts)
         state = live.add_image(ts, img)
         rec = state.record if state is not None else None
+        done = i + 1
         if recorder is not None and img is not None and state is not None:
             recorder.log_frame(system, ts, img, rec)
         if bar is not None:
@@ -149,10 +213,12 @@ def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool) -> None:
                 bar.set_postfix(
                     kf=len(system.map.history), lm=system.map.n_landmarks, st=rec.status if rec else "init"
                 )
-    _feed_imu(live, seq, k, None)
+    if stop is None or stop.signal is None:
+        _feed_imu(live, seq, k, None)
     live.flush()
     if bar is not None:
         bar.close()
+    return done
 
 
 def _feed_imu(live: LiveSlam, seq, k: int, until_ns: int | None) -> int:
@@ -170,11 +236,11 @@ def _write_trajectory_and_map(system: SlamSystem, out: Path):
 
     ts, T = system.trajectory()
     kts, kT = system.keyframe_trajectory()
-    write_tum(out / "trajectory.txt", ts, T)
-    write_tum(out / "keyframes.txt", kts, kT)
+    atomic_write(out / "trajectory.txt", lambda p: write_tum(p, ts, T))
+    atomic_write(out / "keyframes.txt", lambda p: write_tum(p, kts, kT))
     _, pts = system.map.all_points()
     pts = pts[np.isfinite(pts).all(1)] if pts.size else np.zeros((0, 3))
-    write_ply(out / "sparse_map.ply", pts)
+    atomic_write(out / "sparse_map.ply", lambda p: write_ply(p, pts))
     return ts, T, pts
 
 
@@ -185,13 +251,16 @@ def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict
     name = Path(str(seq.root)).name
     if seq.gt is None or len(ts) < 2:
         if plot and len(ts) >= 2:
-            ev.plot_top_view(out / "trajectory_top.png", ts, T, None, None, title=name)
+            atomic_write(out / "trajectory_top.png", lambda p: ev.plot_top_view(p, ts, T, None, None, title=name))
         return {}
     res = {}
     try:
         res.update(ev.trajectory_metrics(ts, T, seq.gt.ts, seq.gt.T_w_b))
         if plot:
-            ev.plot_top_view(out / "trajectory_top.png", ts, T, seq.gt.ts, seq.gt.T_w_b, title=name)
+            atomic_write(
+                out / "trajectory_top.png",
+                lambda p: ev.plot_top_view(p, ts, T, seq.gt.ts, seq.gt.T_w_b, title=name),
+            )
     except Exception as e:  # noqa: BLE001 - evaluation must not lose the run's outputs
         res["eval_error"] = f"{type(e).__name__}: {e}"
         log.error("evaluation failed: %s", e)

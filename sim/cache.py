@@ -23,6 +23,7 @@ def cached_sequence(
     info = cache / "sim_info.json"
     if info.is_file() and (cache / "mav0" / "cam0" / "data.csv").is_file():
         meta = json.loads(info.read_text())
+        complete = meta.get("complete", True)  # sim_info.json says false while (or if) the rendering stopped
         key = (
             meta.get("preset"),
             float(meta.get("duration_s", -1)),
@@ -30,7 +31,7 @@ def cached_sequence(
             bool(meta.get("imu_noise")),
             bool(meta.get("realism")),
         )
-        if key == (preset, float(duration), int(seed), bool(imu_noise), bool(realism)):
+        if complete and key == (preset, float(duration), int(seed), bool(imu_noise), bool(realism)):
             return cache
     print(f"rendering the synthetic sequence ({preset}, {duration:g} s, seed {seed}) into {cache}")
     return Path(

@@ -6,7 +6,9 @@
     dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
 
 The first bare word selects the job (it is turned into the override ``job=...``); everything else is a Hydra
-override of ``conf/sim.yaml`` (``--cfg job`` prints the composed config).
+override of ``conf/sim.yaml`` (``--cfg job`` prints the composed config). Expected failures print one line and
+exit with status 2 (``--debug`` or ``HYDRA_FULL_ERROR=1`` adds the traceback); Ctrl-C or SIGTERM removes the
+partial output of ``euroc`` and exits with status 130.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from omegaconf import DictConfig
 __all__ = ["JOBS", "main"]
 
 JOBS = ("euroc", "nyu", "imu")
+_DEBUG = {"on": False}
 
 
 def _euroc(cfg: DictConfig) -> str:
@@ -157,22 +160,34 @@ def _imu(cfg: DictConfig) -> str:
 def _run(cfg: DictConfig) -> None:
     if cfg.job not in JOBS:
         sys.exit(f"dit-sim: unknown job {cfg.job!r}; expected one of {', '.join(JOBS)} (e.g. `dit-sim euroc`)")
+    from runtime.errors import EXPECTED, report
+
     t0 = time.perf_counter()
     try:
         summary = {"euroc": _euroc, "nyu": _nyu, "imu": _imu}[cfg.job](cfg)
-    except (
-        ValueError,
-        FileExistsError,
-    ) as e:  # bad settings or a foreign output folder: say so, no traceback
-        print(f"dit-sim {cfg.job}: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    except EXPECTED as e:  # bad settings, a foreign or unwritable output folder: say so, no traceback
+        sys.exit(report(f"dit-sim {cfg.job}", e, _DEBUG["on"]))
+    except KeyboardInterrupt:
+        done = "; the partial output was removed" if cfg.job == "euroc" else ""
+        print(f"dit-sim {cfg.job}: interrupted{done}", file=sys.stderr)
+        sys.exit(130)
     print(summary)
     print(f"  took {time.perf_counter() - t0:.1f} s")
 
 
+def _sigterm(signum, frame) -> None:
+    raise KeyboardInterrupt("SIGTERM")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point; ``argv`` (without the program name) defaults to ``sys.argv[1:]``."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    import signal
+
+    from runtime.errors import split_debug
+
+    args, _DEBUG["on"] = split_debug(list(sys.argv[1:] if argv is None else argv))
+    signal.signal(signal.SIGTERM, _sigterm)  # clean up as on Ctrl-C
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # also when started with SIGINT ignored (a background job)
     if args and args[0] in JOBS:
         args[0] = f"job={args[0]}"
     elif args and "=" not in args[0] and not args[0].startswith("-"):

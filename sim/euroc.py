@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -72,6 +73,8 @@ DT_NS = 1_000_000_000 // IMU_RATE_HZ
 T0_NS = 1_700_000_000_000_000_000  # first timestamp [ns]
 DEPTH_SCALE = 5000.0  # depth0 PNG value per metre
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+MAX_SCALE = 4.0  # image resolution factor: 3008x1920 at most
+RENDER_BYTES_PER_PIXEL = 100  # peak memory of one frame's rendering (measured 84 B/px at scales 0.5-2)
 GENERATOR = "dit-sim"
 PHYSICS_DT = 1e-3  # [s] step of the camera motion that gives the pixel velocities (motion blur, rolling shutter)
 
@@ -197,6 +200,45 @@ def physics_jobs(
         )
     ]
     return jobs, exposure_s, gain, illum
+
+
+def check_scale(scale: float, workers: int = 1) -> None:
+    """Refuse an image scale whose rendering cannot fit, before any work, with the memory it would need.
+
+    Raises:
+        ValueError: ``scale`` is not in (0, MAX_SCALE] or the rendering processes would need more memory than
+            the machine has.
+    """
+    if not np.isfinite(scale) or scale <= 0:
+        raise ValueError(f"scale must be a positive number, got {scale}")
+    cam = scaled_camera(min(float(scale), 1e3))
+    need = cam.width * cam.height * RENDER_BYTES_PER_PIXEL * max(1, int(workers))
+    msg = (
+        f"scale={scale:g} renders {cam.width}x{cam.height} frames: about {need / 1e9:.1f} GB for "
+        f"{max(1, workers)} rendering process(es)"
+    )
+    if scale > MAX_SCALE:
+        raise ValueError(f"{msg}; scale must be <= {MAX_SCALE:g}")
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not available on this platform
+        return
+    if need > 0.8 * total:
+        raise ValueError(f"{msg}, more than this machine's {total / 1e9:.1f} GB; use a smaller scale or fewer workers")
+
+
+def write_png(path: Path, img: np.ndarray) -> None:
+    """Encode ``img`` as PNG and write it atomically (temporary name, then rename): never a half-written PNG."""
+    ok, buf = cv2.imencode(".png", img, PNG_PARAMS)
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    try:
+        tmp.write_bytes(buf.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _check_args(preset: str, duration: float, seed: int) -> None:
@@ -379,10 +421,8 @@ def _render_frame(job: tuple) -> int:
     img, depth = render_job(job)
     d = np.rint(depth.astype(np.float64) * DEPTH_SCALE)
     d[(d > 65535) | ~np.isfinite(d)] = 0  # beyond 13.1 m: invalid
-    if not cv2.imwrite(str(w["cam_dir"] / f"{ts}.png"), img, PNG_PARAMS):
-        raise OSError(f"could not write {w['cam_dir'] / f'{ts}.png'}")
-    if not cv2.imwrite(str(w["depth_dir"] / f"{ts}.png"), d.astype(np.uint16), PNG_PARAMS):
-        raise OSError(f"could not write {w['depth_dir'] / f'{ts}.png'}")
+    write_png(w["cam_dir"] / f"{ts}.png", img)
+    write_png(w["depth_dir"] / f"{ts}.png", d.astype(np.uint16))
     return 1
 
 
@@ -441,7 +481,10 @@ def write_euroc_sequence(
 
     Args:
         out: folder to write (it will contain ``mav0`` and ``sim_info.json``); earlier dit-sim output there is
-            replaced, anything else raises ``FileExistsError``.
+            replaced (a partial one too: ``sim_info.json`` says ``"complete": false`` until the end, when it is
+            replaced by the full one, which has no ``complete`` key), anything
+            else raises ``FileExistsError``. An interrupted or failed run removes its partial output; every PNG
+            is written atomically.
         preset: ``textured`` or ``whitewall`` (needs ``duration >= 24`` s; ``sim_info.json`` gives the
             white-wall window).
         duration: length [s]; ``round(duration * 200)`` IMU / ground-truth samples, one frame per 10.
@@ -463,6 +506,7 @@ def write_euroc_sequence(
         ``out`` as a Path (the folder that contains ``mav0``).
     """
     _check_args(preset, duration, seed)
+    check_scale(scale, workers)
     if ideal:
         realism, imu_noise, noise_sigma = False, False, 0.0
     elif realism is None:
@@ -472,7 +516,24 @@ def write_euroc_sequence(
         raise ValueError(f"camera={camera!r} is not one of {', '.join(CAMERAS)}")
     cam = scaled_camera(scale, CAMERAS[camera])
     data = simulate_sequence(preset, duration, int(seed), imu_noise, realism=bool(realism))
-    prepare_output(out, ("mav0",))
+    prepare_output(out, ("mav0", "sim_frames.csv"))
+    partial = {"generator": GENERATOR, "job": "euroc", "complete": False, "preset": preset, "seed": int(seed)}
+    (out / "sim_info.json").write_text(json.dumps(partial, indent=2) + "\n")
+    try:
+        _write_euroc(
+            out, data, cam, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal, progress
+        )
+    except BaseException:  # interrupted or failed: remove this run's partial output
+        for p in (out / "mav0", out / "sim_frames.csv", out / "sim_info.json"):
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+        raise
+    return out
+
+
+def _write_euroc(
+    out, data, cam, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal, progress
+):
+    """The files of :func:`write_euroc_sequence` (``out`` prepared, the simulation done)."""
     mav0 = out / "mav0"
     cam_dir, depth_dir = mav0 / "cam0" / "data", mav0 / "depth0" / "data"
     cam_dir.mkdir(parents=True)
@@ -557,5 +618,6 @@ def write_euroc_sequence(
         info["written_camera"] = [written_cam.fx, written_cam.fy, written_cam.cx, written_cam.cy, *written_cam.dist]
         info["imu_errors"] = asdict(imu_errors_for(preset)) if imu_noise else None
         info["frame_settings"] = "sim_frames.csv (exposure, gain, illumination per frame)"
-    (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
-    return out
+    tmp = out / ".sim_info.json.partial"  # the final sim_info.json has no "complete" key: bytes as before
+    tmp.write_text(json.dumps(info, indent=2) + "\n")
+    os.replace(tmp, out / "sim_info.json")

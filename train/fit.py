@@ -17,7 +17,10 @@ Outputs in the run directory: ``checkpoints/last.ckpt`` (always), ``checkpoints/
 ``metrics.json`` and ``.hydra/`` (the composed config).
 
 ``ckpt_path=last`` resumes from ``<run dir>/checkpoints/last.ckpt``; when the run directory is new (no
-``hydra.run.dir`` given), the newest ``last.ckpt`` under ``paths.log_dir/<task_name>/`` is used instead.
+``hydra.run.dir`` given), the newest ``last.ckpt`` under ``paths.log_dir/<task_name>/`` is used instead. A
+checkpoint to resume from must hold the same network (``model.net``) as this run, else the run stops with a
+one-line error naming both. A new run (no ``ckpt_path``) in a run directory that holds checkpoints of an earlier
+run moves them to ``previous-<time>/checkpoints`` first and says so: nothing is lost, nothing is mixed.
 """
 
 from __future__ import annotations
@@ -45,11 +48,17 @@ from train.metrics import METRICS, format_table  # noqa: E402
 log = logging.getLogger("train.fit")
 
 # train.datamodule restores the sampler position itself (its state_dict), which Lightning does not see.
-warnings.filterwarnings(
-    "ignore", message=r"You're resuming from a checkpoint that ended before the epoch ended"
-)
+warnings.filterwarnings("ignore", message=r"You're resuming from a checkpoint that ended before the epoch ended")
 
-__all__ = ["main", "train", "resolve_ckpt_path", "instantiate_callbacks", "instantiate_loggers"]
+__all__ = [
+    "main",
+    "train",
+    "resolve_ckpt_path",
+    "check_resume_compatible",
+    "set_aside_earlier_run",
+    "instantiate_callbacks",
+    "instantiate_loggers",
+]
 
 
 def instantiate_callbacks(cfg: DictConfig | None) -> list[L.Callback]:
@@ -81,9 +90,7 @@ def instantiate_loggers(cfg: DictConfig | None) -> list:
     return out
 
 
-def resolve_ckpt_path(
-    ckpt_path: str | None, output_dir: str | Path, runs_root: str | Path | None = None
-) -> str | None:
+def resolve_ckpt_path(ckpt_path: str | None, output_dir: str | Path, runs_root: str | Path | None = None) -> str | None:
     """Resolve ``None``, a path or ``last`` (this run's last.ckpt, else the newest one under ``runs_root``).
 
     Raises:
@@ -104,10 +111,44 @@ def resolve_ckpt_path(
         if found:
             log.info("ckpt_path=last: %s has no last.ckpt, resuming the newest run %s", output_dir, found[-1])
             return str(found[-1])
-    log.warning(
-        "ckpt_path=last: no last.ckpt in %s or under %s; training from scratch", own.parent, runs_root
-    )
+    log.warning("ckpt_path=last: no last.ckpt in %s or under %s; training from scratch", own.parent, runs_root)
     return None
+
+
+def check_resume_compatible(ckpt: str | Path, net_cfg: dict) -> None:
+    """Raise ValueError when checkpoint ``ckpt`` holds another network than ``net_cfg`` (``model.net``)."""
+    try:
+        state = torch.load(str(ckpt), map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - torch raises several types for truncated or foreign files
+        raise ValueError(f"ckpt_path={ckpt}: not a readable checkpoint (truncated?): {e}") from e
+    theirs = state.get("net_config") if isinstance(state, dict) else None
+    if not isinstance(theirs, dict):
+        return  # an older checkpoint without its network settings: Lightning checks the weights
+    ours = {k: v for k, v in net_cfg.items() if k != "_target_"}
+    theirs = {k: v for k, v in theirs.items() if k != "_target_"}
+    diff = sorted(k for k in set(ours) | set(theirs) if ours.get(k) != theirs.get(k))
+    if diff:
+        raise ValueError(
+            f"ckpt_path={ckpt} holds another network ({', '.join(f'{k}={theirs.get(k)!r}' for k in diff)}) "
+            f"than this run ({', '.join(f'{k}={ours.get(k)!r}' for k in diff)}); give a matching ckpt_path or "
+            "the same model/modality"
+        )
+
+
+def set_aside_earlier_run(out_dir: Path) -> Path | None:
+    """Move the checkpoints of an earlier run in ``out_dir`` to ``out_dir/previous-<UTC time>/``; returns it."""
+    ckpts = out_dir / "checkpoints"
+    if not ckpts.is_dir() or not any(ckpts.glob("*.ckpt")):
+        return None
+    import time
+
+    dest = out_dir / f"previous-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+    dest.mkdir(parents=True, exist_ok=False)
+    for name in ("checkpoints", "metrics.json"):
+        if (out_dir / name).exists():
+            os.replace(out_dir / name, dest / name)
+    log.warning("%s held checkpoints of an earlier run: moved them to %s (resume with ckpt_path=last)", out_dir, dest)
+    return dest
 
 
 def _output_dir(cfg: DictConfig) -> Path:
@@ -144,6 +185,10 @@ def train(cfg: DictConfig) -> dict:
     if cfg.get("train", True):
         runs_root = Path(cfg.paths.log_dir) / str(cfg.task_name) if cfg.get("paths") else None
         ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), out_dir, runs_root)
+        if ckpt is not None:
+            check_resume_compatible(ckpt, net_cfg)
+        elif trainer.is_global_zero:
+            set_aside_earlier_run(out_dir)
         trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt)
 
     metrics: dict = {}
@@ -168,9 +213,7 @@ def train(cfg: DictConfig) -> dict:
         if "val_median/rmse" in metrics:
             rows["median GT (reference)"] = {k: metrics[f"val_median/{k}"] for k in METRICS}
         src = "best checkpoint" if metrics["weights"] != "final" else "final weights"
-        print(
-            f"\nValidation after {trainer.global_step} steps ({src}; ms/frame = forward time / val batch):\n"
-        )
+        print(f"\nValidation after {trainer.global_step} steps ({src}; ms/frame = forward time / val batch):\n")
         print(format_table(rows, first="model/modality"))
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
@@ -181,11 +224,12 @@ def train(cfg: DictConfig) -> dict:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="fit")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry; returns ``val/rmse`` (for sweepers)."""
+    from runtime.errors import EXPECTED, report
+
     try:
         metrics = train(cfg)
-    except (FileNotFoundError, FileExistsError, ValueError) as e:
-        log.error("%s", e)
-        sys.exit(f"fit: {e}")
+    except EXPECTED as e:
+        sys.exit(report("fit", e, os.environ.get("HYDRA_FULL_ERROR") == "1"))
     return metrics.get("val/rmse")
 
 

@@ -35,7 +35,7 @@ class ImuNoiseConfig:
     gravity: float = GRAVITY
     gap_factor: float = 4.0  # an interval longer than gap_factor / rate is logged as a gap
     adapt_noise: bool = True  # raise the white-noise densities to the level measured at initialisation
-    max_noise_scale: float = 30.0  # bound on that raise
+    max_noise_scale: float = 5.0  # bound on that raise (raw spread overstates narrow-band vibration's effect)
 
 
 def preintegration_params(imu, cfg: ImuNoiseConfig | None = None, scales: tuple[float, float] | None = None):

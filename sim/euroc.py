@@ -521,8 +521,9 @@ def write_euroc_sequence(
     (out / "sim_info.json").write_text(json.dumps(partial, indent=2) + "\n")
     try:
         _write_euroc(
-            out, data, cam, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal, progress
-        )
+            out, data, cam, camera, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal,
+            progress,
+        )  # fmt: skip
     except BaseException:  # interrupted or failed: remove this run's partial output
         for p in (out / "mav0", out / "sim_frames.csv", out / "sim_info.json"):
             shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
@@ -531,7 +532,7 @@ def write_euroc_sequence(
 
 
 def _write_euroc(
-    out, data, cam, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal, progress
+    out, data, cam, camera, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal, progress
 ):
     """The files of :func:`write_euroc_sequence` (``out`` prepared, the simulation done)."""
     mav0 = out / "mav0"

@@ -735,8 +735,8 @@ def _slam_realistic() -> list[str]:
     return [
         "## Sparse VI-SLAM on realistic sensors",
         "",
-        "`dit-slam` (sparse, default settings) on the realistic presets (camera physics, vibrating IMU; 30 s) and on the "
-        "real MH_05 excerpt completed with a vibrating IMU by `dit-sim imu` (`mh05`: real timing, starts in flight; "
+        "`dit-slam` (sparse, default settings) on the realistic presets (camera physics, vibrating IMU; 30 s) and on "
+        "the real MH_05 excerpt completed with a vibrating IMU by `dit-sim imu` (`mh05`: real timing, starts in flight; "
         "`mh05_still2`: a 2 s still period prepended):",
         "",
         _table(head + ["losses", "CPU ms/frame"], rows),

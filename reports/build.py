@@ -736,8 +736,8 @@ def _slam_realistic() -> list[str]:
         "## Sparse VI-SLAM on realistic sensors",
         "",
         "`dit-slam` (sparse, default settings) on the realistic presets (camera physics, vibrating IMU; 30 s) "
-        "and on the real MH_05 excerpt completed with a vibrating IMU by `dit-sim imu` (`mh05`: real timing, starts in flight; "
-        "`mh05_still2`: a 2 s still period prepended; seed = the IMU noise seed of `dit-sim imu`):",
+        "and on the real MH_05 excerpt completed with a vibrating IMU by `dit-sim imu` (`mh05`: real timing, "
+        "starts in flight; `mh05_still2`: a 2 s still period prepended; seed = the IMU noise seed of `dit-sim imu`):",
         "",
         _table(head + ["losses", "CPU ms/frame"], rows),
         "",

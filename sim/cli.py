@@ -27,15 +27,9 @@ JOBS = ("euroc", "nyu", "imu")
 _DEBUG = {"on": False}
 
 
-def _euroc(cfg: DictConfig) -> str:
-    from sim.euroc import write_euroc_sequence
-
-    out = cfg.out if cfg.out is not None else f"data/sim/euroc_{cfg.preset}_s{cfg.seed}"
-    fmt = str(cfg.get("format", "asl"))
-    if fmt != "asl":
-        return _euroc_bag(cfg, out, fmt)
-    root = write_euroc_sequence(
-        out,
+def _sequence_kwargs(cfg: DictConfig) -> dict:
+    """The rendering settings of ``dit-sim euroc`` (ASL folder and bags alike)."""
+    return dict(
         camera=str(cfg.get("camera", "pinhole")),
         preset=str(cfg.preset),
         duration=float(cfg.duration),
@@ -48,6 +42,16 @@ def _euroc(cfg: DictConfig) -> str:
         realism=None if cfg.realism is None else bool(cfg.realism),
         ideal=bool(cfg.ideal),
     )
+
+
+def _euroc(cfg: DictConfig) -> str:
+    from sim.euroc import write_euroc_sequence
+
+    out = cfg.out if cfg.out is not None else f"data/sim/euroc_{cfg.preset}_s{cfg.seed}"
+    fmt = str(cfg.get("format", "asl"))
+    if fmt != "asl":
+        return _euroc_bag(cfg, out, fmt)
+    root = write_euroc_sequence(out, **_sequence_kwargs(cfg))
     info = json.loads((root / "sim_info.json").read_text())
     w, h = info["resolution"]
     mav0 = root / "mav0"
@@ -73,21 +77,7 @@ def _euroc(cfg: DictConfig) -> str:
 def _euroc_bag(cfg: DictConfig, out: str, fmt: str) -> str:
     from sim.bag import write_bag_sequence
 
-    bag = write_bag_sequence(
-        out,
-        fmt,
-        camera=str(cfg.get("camera", "pinhole")),
-        preset=str(cfg.preset),
-        duration=float(cfg.duration),
-        seed=int(cfg.seed),
-        imu_noise=bool(cfg.imu_noise),
-        progress=bool(cfg.progress),
-        scale=float(cfg.scale),
-        workers=int(cfg.workers),
-        noise_sigma=float(cfg.image_noise),
-        realism=None if cfg.realism is None else bool(cfg.realism),
-        ideal=bool(cfg.ideal),
-    )
+    bag = write_bag_sequence(out, fmt, **_sequence_kwargs(cfg))
     info = json.loads((Path(out) / "sim_info.json").read_text())
     return (
         f"dit-sim euroc: wrote {bag} ({fmt}): /cam0/image_raw {info['frames']} frames, /imu0 "

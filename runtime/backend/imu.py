@@ -208,10 +208,12 @@ def propagate(
     bg: np.ndarray | None = None,
     ba: np.ndarray | None = None,
     g_w: np.ndarray = GRAVITY_W,
+    backward: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Numpy strapdown integration with the same discretisation as GTSAM's preintegration.
 
-    ``p += v dt + a dt^2 / 2``, ``v += a dt`` with ``a = R (f - ba) + g``, then ``R <- R Exp((w - bg) dt)``.
+    ``p += v dt + a dt^2 / 2``, ``v += a dt`` with ``a = R (f - ba) + g``, then ``R <- R Exp((w - bg) dt)``;
+    ``backward``: the exact inverse, the state at the start of the pieces from the state at their end.
 
     Args:
         R_w_b: (3, 3), p_w: (3,) m, v_w: (3,) m/s: start state.
@@ -227,37 +229,18 @@ def propagate(
     bg = np.zeros(3) if bg is None else np.asarray(bg, dtype=np.float64)
     ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
     dR = so3_exp((gyro - bg) * dt[:, None])  # (K, 3, 3)
+    if backward:
+        for k in range(dt.shape[0] - 1, -1, -1):
+            R = R @ dR[k].T
+            a = R @ (accel[k] - ba) + g_w
+            v = v - a * dt[k]
+            p = p - v * dt[k] - 0.5 * a * dt[k] ** 2
+        return R, p, v
     for k in range(dt.shape[0]):
         a = R @ (accel[k] - ba) + g_w
         p = p + v * dt[k] + 0.5 * a * dt[k] ** 2
         v = v + a * dt[k]
         R = R @ dR[k]
-    return R, p, v
-
-
-def propagate_back(
-    R_w_b: np.ndarray,
-    p_w: np.ndarray,
-    v_w: np.ndarray,
-    gyro: np.ndarray,
-    accel: np.ndarray,
-    dt: np.ndarray,
-    bg: np.ndarray | None = None,
-    ba: np.ndarray | None = None,
-    g_w: np.ndarray = GRAVITY_W,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The inverse of :func:`propagate`: the state at the start of the pieces from the state at their end."""
-    R = np.array(R_w_b, dtype=np.float64)
-    p = np.array(p_w, dtype=np.float64)
-    v = np.array(v_w, dtype=np.float64)
-    bg = np.zeros(3) if bg is None else np.asarray(bg, dtype=np.float64)
-    ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
-    dR = so3_exp((gyro - bg) * dt[:, None])
-    for k in range(dt.shape[0] - 1, -1, -1):
-        R = R @ dR[k].T
-        a = R @ (accel[k] - ba) + g_w
-        v = v - a * dt[k]
-        p = p - v * dt[k] - 0.5 * a * dt[k] ** 2
     return R, p, v
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from runtime.backend.imu import propagate_back
+from runtime.backend.imu import propagate
 from runtime.geometry import interpolate_poses, make_T, ns_to_s, s_to_ns
 from runtime.init.dynamic import DynamicInitConfig, InitFailed, initialize_hovering, initialize_in_motion, rotation_only
 from runtime.init.static import InitConfig, StaticInitializer
@@ -161,7 +161,7 @@ class InitRunner:
         out = []
         R, p, t = T[:3, :3], T[:3, 3], first.ts
         for s in reversed(older):
-            R, p, v = propagate_back(R, p, v, *self.imu.segment(s.ts, t), bg=bias[3:], ba=bias[:3])
+            R, p, v = propagate(R, p, v, *self.imu.segment(s.ts, t), bg=bias[3:], ba=bias[:3], backward=True)
             t = s.ts
             out.append((s, make_T(R, p)))
         return out

@@ -140,6 +140,10 @@ class LiveSlam:
         dense: a :class:`runtime.dense.DenseMapper` for the dense system, or None (sparse).
         on_frame: called with the :class:`LiveState` of every processed image.
         on_keyframe: called with the :class:`LiveState` of every new keyframe.
+        on_map: called after every new keyframe's optimisation with the map: ``(ids (N,), X_w (N, 3))`` of every
+            point (the window's landmarks and the map points that left it).
+        on_depth: with ``dense``, called after every new keyframe with ``(kf_id, depth)``: the newest keyframe's
+            dense depth (network resolution, metres) decoded from its current code.
 
     Timestamps are int64 ns on one clock for both sensors. Images are (H, W) uint8 grey as the camera gives them
     (``None``: a frame whose image could not be read; the system coasts on the IMU through it).
@@ -155,12 +159,15 @@ class LiveSlam:
         dense=None,
         on_frame: Callable[[LiveState], None] | None = None,
         on_keyframe: Callable[[LiveState], None] | None = None,
+        on_map: Callable[[np.ndarray, np.ndarray], None] | None = None,
+        on_depth: Callable[[int, np.ndarray], None] | None = None,
     ) -> None:
         self.cfg = cfg or SlamConfig()
         self.imu = GrowingImuStream(imu_params.rate_hz, getattr(imu_params, "T_b_s", None), self.cfg.imu.gap_factor)
         self.system = SlamSystem(camera, T_b_c, self.imu, imu_params, self.cfg, dense=dense)
         self.dense = dense
         self.on_frame, self.on_keyframe = on_frame, on_keyframe
+        self.on_map, self.on_depth = on_map, on_depth
         self._pending: deque[tuple[int, np.ndarray | None]] = deque()
         self._n_frames = 0
         self._last_image_ts: int | None = None
@@ -233,9 +240,18 @@ class LiveSlam:
         )
         if self.on_frame is not None:
             self.on_frame(state)
-        if state.is_keyframe and self.on_keyframe is not None:
-            self.on_keyframe(state)
+        if state.is_keyframe:
+            self._keyframe_callbacks(state)
         return state
+
+    def _keyframe_callbacks(self, state: LiveState) -> None:
+        if self.on_keyframe is not None:
+            self.on_keyframe(state)
+        if self.on_map is not None:
+            self.on_map(*self.system.map.all_points())
+        if self.on_depth is not None and self.dense is not None and self.dense.kfs:
+            kf_id = max(self.dense.kfs)
+            self.on_depth(kf_id, self.dense.final_depth(self.dense.kfs[kf_id]))
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Poses of every processed frame after initialisation: ts (N,) ns, ``T_w_b`` (N, 4, 4)."""

@@ -38,8 +38,15 @@ def test_shuffled_causal_order_gives_the_batch_trajectory(seq):
     ts_b, T_b = batch.trajectory()
     assert len(ts_b) > 20
 
-    states, kfs = [], []
-    live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, on_keyframe=kfs.append)
+    states, kfs, maps, depths = [], [], [], []
+    live = LiveSlam(
+        seq.camera,
+        seq.T_b_c,
+        seq.imu,
+        on_keyframe=kfs.append,
+        on_map=lambda ids, X: maps.append((ids.copy(), X.copy())),
+        on_depth=lambda k, d: depths.append(k),
+    )
     max_pending = 0
     for _, kind, k in _arrivals(seq, seed=7):
         if kind == 0:
@@ -54,6 +61,10 @@ def test_shuffled_causal_order_gives_the_batch_trajectory(seq):
     assert np.array_equal(ts_l, ts_b) and np.array_equal(T_l, T_b)  # bit-identical
     assert m["frames"] == len(seq) and len(states) + live.n_pending <= len(seq)
     assert [s.ts for s in kfs] == [s.ts for s in states if s.is_keyframe] and len(kfs) == m["keyframes"] > 2
+    assert len(maps) == len(kfs) and not depths  # the map after every keyframe; no depth without dense
+    ids, X = live.system.map.all_points()
+    assert np.array_equal(np.sort(maps[-1][0]), np.sort(ids)) and np.isfinite(maps[-1][1]).all()
+    assert maps[-1][0].size > maps[0][0].size  # the map grows
     last = [s for s in states if s.initialized][-1]
     assert last.T_w_b.shape == (4, 4) and np.array_equal(last.T_w_b, batch.records[-1].T_online)
 

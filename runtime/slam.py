@@ -175,6 +175,7 @@ class SlamSystem:
         self.still_since_kf = True
         self.lost = False
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
+        self.coast_warned = False
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
         self.restart_until: int | None = None  # ns: try an in-motion re-initialisation until then
         self.initializer.reset()
@@ -315,9 +316,11 @@ class SlamSystem:
         """Visual tracking lost (too few landmarks tracked) or regained; a long loss asks for relocalisation."""
         c = self.cfg
         if n_lm < c.lost_min_landmarks and not self.lost and self.map.n_landmarks:
-            self.lost = True
-            self.lost_since = ts
+            self.lost, self.lost_since, self.coast_warned = True, ts, False
             self.event(ts, f"visual tracking lost ({n_lm} landmarks tracked): coasting on the IMU")
+        elif self.lost and n_lm < c.lost_min_landmarks and not self.coast_warned and ts - self.lost_since >= s_to_ns(3):
+            self.coast_warned = True  # once per loss
+            self.event(ts, "no visual constraints for 3 s: the pose is IMU dead reckoning, its error grows quickly")
         elif self.lost and n_lm >= c.lost_min_landmarks:
             self.lost = False
             dur = ns_to_s(ts - self.lost_since)
@@ -528,7 +531,7 @@ class SlamSystem:
             self.event(
                 kf.ts,
                 f"relocalisation gave up after {self.cfg.reloc.max_attempts} keyframes: continuing on the "
-                "drifted estimate",
+                f"estimate that drifted for {ns_to_s(pend['regained'] - pend['since']):.1f} s without visual tracking",
             )
             self.reloc_pending = None
             return

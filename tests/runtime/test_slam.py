@@ -205,6 +205,7 @@ def test_a_long_loss_is_bridged_reported_and_recovered():
     system, m = run(14.0, blank=(5.0, 9.0))
     msgs = [msg for _, msg in system.events]
     assert any("visual tracking lost" in s for s in msgs)
+    assert sum("no visual constraints for 3 s" in s for s in msgs) == 1  # said once, while it lasts
     regained = [s for s in msgs if "visual tracking regained" in s or "re-initialised" in s]
     assert regained, msgs
     assert len(system.records) == 280 - system.records[0].frame_idx  # every frame with images and IMU

@@ -126,6 +126,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         metrics["error"] = f"never initialised ({why})"
         log.error("never initialised: no trajectory (%s)", why)
     metrics.update(_evaluate(seq, ts, T, out, plot))
+    metrics["segments"] = _segments(system, seq, ts, T, out)
     if recorder is not None:
         recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
         recorder.close()
@@ -210,9 +211,7 @@ def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None
         if bar is not None:
             bar.update(1)
             if i % 20 == 0:
-                bar.set_postfix(
-                    kf=len(system.map.history), lm=system.map.n_landmarks, st=rec.status if rec else "init"
-                )
+                bar.set_postfix(kf=len(system.map.history), lm=system.map.n_landmarks, st=rec.status if rec else "init")
     if stop is None or stop.signal is None:
         _feed_imu(live, seq, k, None)
     live.flush()
@@ -242,6 +241,39 @@ def _write_trajectory_and_map(system: SlamSystem, out: Path):
     pts = pts[np.isfinite(pts).all(1)] if pts.size else np.zeros((0, 3))
     atomic_write(out / "sparse_map.ply", lambda p: write_ply(p, pts))
     return ts, T, pts
+
+
+def _segments(system: SlamSystem, seq, ts: np.ndarray, T: np.ndarray, out: Path) -> list[dict]:
+    """The trajectory's segments (a new one, in its own frame, after each re-initialisation from scratch), each
+    scored on its own; with more than one, ``trajectory_segments.txt`` gives each pose's segment."""
+    from runtime import eval as ev
+
+    seg = np.array([r.segment for r in system.records], dtype=np.int64)
+    out_list = []
+    for k in np.unique(seg):
+        m = seg == k
+        row = {
+            "segment": int(k),
+            "t_start_s": ns_to_s(int(ts[m][0])),
+            "t_end_s": ns_to_s(int(ts[m][-1])),
+            "poses": int(m.sum()),
+        }
+        if seq.gt is not None and m.sum() >= 2 and len(np.unique(seg)) > 1:
+            try:
+                row.update(
+                    {
+                        k2: v
+                        for k2, v in ev.trajectory_metrics(ts[m], T[m], seq.gt.ts, seq.gt.T_w_b).items()
+                        if "ate" in k2
+                    }
+                )
+            except ValueError as e:
+                row["eval_error"] = str(e)
+        out_list.append(row)
+    if len(out_list) > 1:
+        lines = "".join(f"{ns_to_s(int(t)):.9f} {int(s)}\n" for t, s in zip(ts, seg, strict=True))
+        atomic_text(out / "trajectory_segments.txt", "# timestamp[s] segment\n" + lines)
+    return out_list
 
 
 def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict:

@@ -52,6 +52,7 @@ from runtime.geometry import inv_T, ns_to_s, s_to_ns, to_pose3
 from runtime.init import DynamicInitConfig, InitConfig, imu_rest_stats
 from runtime.init.runner import InitRunner, Snapshot, StartState
 from runtime.reloc import Relocalizer, RelocConfig
+from runtime.reloc.relocalizer import relocalize_pending
 from runtime.start import adapt_imu_noise, backfill_records, seed_window, try_restart
 from runtime.trajectory import FrameRecord, fill_trajectory
 
@@ -87,6 +88,7 @@ class SlamConfig:
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
     imu_gap_reinit_s: float = 0.25  # an IMU gap longer than this re-initialises from the propagated state
+    imu_gap_max_s: float = 1.0  # longer: no poses inside the gap, re-initialise from scratch (a new segment)
     trajectory_mode: str = "refined"  # refined | online
 
     def __post_init__(self) -> None:
@@ -147,6 +149,7 @@ class SlamSystem:
         self.events: list[tuple[float, str]] = []
         self.relocalisations: list[dict] = []  # per relocalisation: when, how long lost, drift corrected
         self.records: list[FrameRecord] = []
+        self.segment = 0  # current trajectory segment (see runtime.trajectory.FrameRecord)
         self.n_frames = 0
         self.n_map_matches = 0
         self.kf_reasons: dict[str, int] = defaultdict(int)
@@ -211,6 +214,11 @@ class SlamSystem:
         if seg is None:
             return None
         gyro, acc, dt, gap, prev = seg
+        if self.initialized and max(gap, self.imu.since_last(ts)) > self.cfg.imu_gap_max_s:
+            return self._gap_reset(ts, max(gap, self.imu.since_last(ts)))
+        if self.initialized and self.imu.since_last(ts) > self.cfg.imu_gap_reinit_s:
+            integrate(self.pim, gyro, acc, dt)  # inside an IMU gap: the propagation is stale, no pose
+            return None
         bias = self.backend.latest.bias if self.initialized else np.zeros(6)
         t0 = self._toc("imu", t0)
         feats, image = self._track(frame_idx, ts, image, (gyro, acc, dt), prev, bias)
@@ -378,6 +386,9 @@ class SlamSystem:
         c = self.cfg
         if image is None or feats is None:
             return None
+        if self.imu.since_last(ts) > c.imu_gap_reinit_s:  # inside an IMU gap: start afresh after it
+            self.initializer.reset()
+            return None
         if self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:
             feats = self.tracker.replenish(ts, image)
         keep_image = image if self.dense is not None else None
@@ -517,48 +528,20 @@ class SlamSystem:
         """Relocalise after a long loss (when one is pending), else re-find map points near their projections."""
         c = self.cfg.reloc
         if self.reloc_pending is not None and not self.lost:
-            self._relocalize(kf, image)
+            relocalize_pending(self, kf, image)
         elif c.enabled and c.guided and not self.lost:
             t_ids = self.reloc.guided_match(kf, image)
             for j in t_ids:
                 self.track_obs.pop(int(j), None)
             self.n_map_matches += int(t_ids.size)
 
-    def _relocalize(self, kf: Keyframe, image: np.ndarray) -> None:
-        pend = self.reloc_pending
-        pend["attempts"] += 1
-        if pend["attempts"] > self.cfg.reloc.max_attempts:
-            self.event(
-                kf.ts,
-                f"relocalisation gave up after {self.cfg.reloc.max_attempts} keyframes: continuing on the "
-                f"estimate that drifted for {ns_to_s(pend['regained'] - pend['since']):.1f} s without visual tracking",
-            )
-            self.reloc_pending = None
-            return
-        r = self.reloc.relocalize(kf, image, pend["since"], pend["regained"])
-        if r is None:
-            return
-        self.T_cur = r.T_corr @ self.T_cur
-        for j in r.track_ids:
-            self.track_obs.pop(int(j), None)
-        lost_s = ns_to_s(pend["regained"] - pend["since"])
-        self.relocalisations.append(
-            {
-                "t_s": round(ns_to_s(kf.ts), 4),
-                "lost_s": round(lost_s, 3),
-                "drift_m": r.drift_m,
-                "yaw_deg": r.yaw_deg,
-                "inliers": r.n_inliers,
-                "bridged": r.bridged,
-            }
-        )
-        self.event(
-            kf.ts,
-            f"relocalised against {r.n_inliers} map points ({r.n_matches} matches) after {lost_s:.1f} s "
-            f"without visual tracking: drift correction {r.drift_m:.3f} m, yaw {r.yaw_deg:.2f} deg"
-            + (" (coast re-estimated over its IMU links)" if r.bridged else " (spread over the coast)"),
-        )
-        self.reloc_pending = None
+    def _gap_reset(self, ts: int, gap: float) -> None:
+        """An IMU gap too long to bridge: no poses until the system has re-initialised from the data after it,
+        in a new trajectory segment (its own frame)."""
+        self.event(ts, f"IMU gap of {gap:.2f} s: no poses inside it; re-initialising from the data after it "
+                   f"(trajectory segment {self.segment + 1}, in a new frame)")  # fmt: skip
+        self.segment += 1
+        self._hard_reset()
 
     def _hard_reset(self) -> None:
         self.backend.clear_window()
@@ -570,6 +553,7 @@ class SlamSystem:
             return None
         ref = self.backend.latest
         rec = FrameRecord(ts, frame_idx, ref.kf_id, inv_T(ref.T_w_b) @ self.T_cur, self.T_cur.copy(), is_kf, status)
+        rec.segment = self.segment
         self.records.append(rec)
         return rec
 

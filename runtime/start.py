@@ -78,6 +78,7 @@ def backfill_records(system, st, kf_ids: list[int]) -> None:
         t_ref, ref_id, T_ref = max([f for f in firsts if f[0] <= snap.ts], default=firsts[0], key=lambda f: f[0])
         is_kf = t_ref == snap.ts
         rec = FrameRecord(snap.ts, snap.frame_idx, ref_id, inv_T(T_ref) @ T, T.copy(), is_kf, "init")
+        rec.segment = system.segment
         if is_kf:
             rec.T_created = T.copy()
         system.records.append(rec)

@@ -25,6 +25,7 @@ class FrameRecord:
     is_kf: bool
     status: str  # tracking | coasting | no_image | still
     T_created: np.ndarray | None = None  # keyframes: the pose they entered the window with (before LM)
+    segment: int = 0  # trajectory segment: a new one (in a new frame) after each re-initialisation from scratch
 
 
 def fill_trajectory(records: list[FrameRecord], history: dict, mode: str = "refined") -> tuple[np.ndarray, np.ndarray]:

@@ -185,6 +185,11 @@ class ImuStream:
         keep = dt > 0
         return self.gyro[src][keep], self.accel[src][keep], dt[keep]
 
+    def since_last(self, t: int) -> float:
+        """Seconds from the last sample at or before ``t`` to ``t`` (inf before the first sample)."""
+        i = int(np.searchsorted(self.ts, t, "right")) - 1
+        return float(ns_to_s(t - self.ts[i])) if i >= 0 else float("inf")
+
     def window(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Raw samples with ``t0 <= ts < t1``: (ts, gyro, accel)."""
         i0 = int(np.searchsorted(self.ts, t0, "left"))

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.geometry import inv_T
+from runtime.geometry import inv_T, ns_to_s
 from runtime.reloc.descriptors import MapDescriptors, candidates_in_view, guided_match, in_view, match, pnp
 
 
@@ -176,3 +176,43 @@ class Relocalizer:
         self.tracker.rename(t_ids, m_ids)
         self.backend.reactivate_landmarks(m_ids, X_c[mi], kf.kf_id, feats.uv_u[fidx[fi]], c.map_point_sigma)
         return t_ids
+
+
+def relocalize_pending(system, kf, image: np.ndarray) -> None:
+    """The pending relocalisation of ``system`` (a :class:`runtime.slam.SlamSystem` whose visual tracking
+    resumed after a long loss) at keyframe ``kf``: try it, apply its correction, report it, or give up after
+    ``max_attempts`` keyframes."""
+    pend = system.reloc_pending
+    pend["attempts"] += 1
+    if pend["attempts"] > system.cfg.reloc.max_attempts:
+        system.event(
+            kf.ts,
+            f"relocalisation gave up after {system.cfg.reloc.max_attempts} keyframes: continuing on the "
+            f"estimate that drifted for {ns_to_s(pend['regained'] - pend['since']):.1f} s without visual tracking",
+        )
+        system.reloc_pending = None
+        return
+    r = system.reloc.relocalize(kf, image, pend["since"], pend["regained"])
+    if r is None:
+        return
+    system.T_cur = r.T_corr @ system.T_cur
+    for j in r.track_ids:
+        system.track_obs.pop(int(j), None)
+    lost_s = ns_to_s(pend["regained"] - pend["since"])
+    system.relocalisations.append(
+        {
+            "t_s": round(ns_to_s(kf.ts), 4),
+            "lost_s": round(lost_s, 3),
+            "drift_m": r.drift_m,
+            "yaw_deg": r.yaw_deg,
+            "inliers": r.n_inliers,
+            "bridged": r.bridged,
+        }
+    )
+    system.event(
+        kf.ts,
+        f"relocalised against {r.n_inliers} map points ({r.n_matches} matches) after {lost_s:.1f} s "
+        f"without visual tracking: drift correction {r.drift_m:.3f} m, yaw {r.yaw_deg:.2f} deg"
+        + (" (coast re-estimated over its IMU links)" if r.bridged else " (spread over the coast)"),
+    )
+    system.reloc_pending = None

@@ -211,3 +211,20 @@ def test_a_long_loss_is_bridged_reported_and_recovered():
     assert len(system.records) == 280 - system.records[0].frame_idx  # every frame with images and IMU
     assert system.records[-1].status == "tracking"
     assert ate(system, m)["ate_se3_rmse_m"] < 0.1
+
+
+def test_a_long_imu_gap_gives_no_poses_inside_and_a_new_segment():
+    """A 2 s IMU gap: no poses while the IMU is missing (never dead-reckoned from a stale sample), then a new
+    initialisation from the data after the gap, in its own trajectory segment, scored on its own."""
+    system, m = run(12.0, gap=(5.0, 7.0))
+    msgs = [msg for _, msg in system.events]
+    assert any("IMU gap of" in s and "segment 1" in s for s in msgs), msgs
+    t = np.array([(r.ts - T0) * 1e-9 for r in system.records])
+    seg = np.array([r.segment for r in system.records])
+    assert not np.any((t > 5.0 + 0.25 + 0.05) & (t < 7.0))  # nothing inside the gap
+    assert set(seg) == {0, 1} and t[seg == 1].min() >= 7.0
+    ts, T = system.trajectory()
+    for k in (0, 1):  # each segment is accurate in its own frame
+        mk = seg == k
+        met = ev.trajectory_metrics(ts[mk], T[mk], ts[mk], m.body((ts[mk] - T0) * 1e-9))
+        assert met["ate_se3_rmse_m"] < 0.05, (k, met)

@@ -56,10 +56,10 @@ def trajectory_metrics(
         raise ValueError(f"estimate has {est_ts.size} timestamps but poses of shape {est_T.shape}")
     ref_T, inside = interpolate_poses(est_ts, gt_ts, gt_T)
     if inside.sum() < 3:
+        span = f"{ns_to_s(est_ts[0]):.3f}..{ns_to_s(est_ts[-1]):.3f} s" if est_ts.size else "empty"
         raise ValueError(
             f"only {int(inside.sum())} estimated poses lie within the ground truth's time range (estimate "
-            f"{ns_to_s(est_ts[0]):.3f}..{ns_to_s(est_ts[-1]):.3f} s, ground truth {ns_to_s(gt_ts[0]):.3f}.."
-            f"{ns_to_s(gt_ts[-1]):.3f} s; same clock and unit?)"
+            f"{span}, ground truth {ns_to_s(gt_ts[0]):.3f}..{ns_to_s(gt_ts[-1]):.3f} s; same clock and unit?)"
         )
     ts = est_ts[inside]
     est = _traj(ts, est_T[inside])

@@ -1,11 +1,13 @@
 """``dit-eval``: trajectory evaluation (ATE/RPE with evo) and the depth evaluation of ``train.evaluate``.
 
-dit-eval trajectory est=TUM gt=TUM|EUROC_DIR|data.csv [out=DIR] [rpe_delta_s=1.0]
+dit-eval trajectory est=TUM gt=TUM|EUROC_DIR|data.csv [out=DIR] [rpe_delta_s=1.0] [segments=auto|none|FILE]
 dit-eval depth ...            (forwarded to train.evaluate.main, the depth evaluation)
 
 The trajectory evaluation also estimates the time offset that fits the ground truth best and warns when it is
-large, and says how many estimated poses lie outside the ground truth and were not evaluated. Expected failures
-print one line and exit with status 2 (``--debug`` adds the traceback).
+large, and says how many estimated poses lie outside the ground truth and were not evaluated. A trajectory in
+several segments (``dit-slam`` re-initialised from scratch after a long IMU gap: each segment in its own frame;
+``trajectory_segments.txt`` beside the estimate, or ``segments=FILE``) is also scored segment by segment.
+Expected failures print one line and exit with status 2 (``--debug`` adds the traceback).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 __all__ = ["main"]
 
 _EVAL_USAGE = (
-    "usage: dit-eval trajectory est=TUM gt=TUM|EUROC_DIR|data.csv [out=DIR] [rpe_delta_s=1.0]\n"
+    "usage: dit-eval trajectory est=TUM gt=TUM|EUROC_DIR|data.csv [out=DIR] [rpe_delta_s=1.0] [segments=auto]\n"
     "       dit-eval depth [overrides ...]"
 )
 
@@ -26,7 +28,7 @@ def _eval_trajectory(args: list[str], debug: bool = False) -> int:
     from runtime import eval as ev
     from runtime.errors import EXPECTED, report
 
-    opts = {"est": None, "gt": None, "out": None, "rpe_delta_s": "1.0"}
+    opts = {"est": None, "gt": None, "out": None, "rpe_delta_s": "1.0", "segments": "auto"}
     for a in args:
         k, sep, v = a.partition("=")
         if not sep or k not in opts:
@@ -41,6 +43,7 @@ def _eval_trajectory(args: list[str], debug: bool = False) -> int:
         gt_ts, gt_T = ev.load_trajectory(opts["gt"])
         m = ev.trajectory_metrics(est_ts, est_T, gt_ts, gt_T, rpe_delta_s=float(opts["rpe_delta_s"]))
         m.update(ev.best_time_offset(est_ts, est_T, gt_ts, gt_T))
+        m["segments"] = _segments(opts, est_ts, est_T, gt_ts, gt_T)
     except EXPECTED as e:
         return report("dit-eval trajectory", e, debug)
     m["estimated_poses"] = int(len(est_ts))
@@ -62,6 +65,13 @@ def _eval_trajectory(args: list[str], debug: bool = False) -> int:
         "rpe_rot_rmse_deg",
     ):
         print(f"  {k:18s} {m[k]:.5f}")
+    if len(m["segments"]) > 1:
+        print(f"  {len(m['segments'])} segments, each in its own frame (the figures above mix them):")
+        for r in m["segments"]:
+            ate = r.get("ate_se3_rmse_m")
+            print(
+                f"    segment {r['segment']}: {r['poses']} poses, ATE SE3 " + ("n/a" if ate is None else f"{ate:.5f} m")
+            )
     if opts["out"]:
         from runtime.outputs import atomic_text, atomic_write, check_writable
 
@@ -76,6 +86,36 @@ def _eval_trajectory(args: list[str], debug: bool = False) -> int:
         )
         print(f"  wrote {out}/trajectory_metrics.json, trajectory_top.png")
     return 0
+
+
+def _segments(opts: dict, est_ts, est_T, gt_ts, gt_T) -> list[dict]:
+    """Each segment scored on its own (``segments``: ``auto`` reads ``trajectory_segments.txt`` beside the
+    estimate when it is there, ``none`` skips, else a file of ``timestamp[s] segment`` lines)."""
+    import numpy as np
+
+    from runtime import eval as ev
+
+    if opts["segments"] == "none":
+        return []
+    f = Path(opts["est"]).with_name("trajectory_segments.txt") if opts["segments"] == "auto" else Path(opts["segments"])
+    if not f.is_file():
+        if opts["segments"] != "auto":
+            raise FileNotFoundError(f"segments file {f} not found")
+        return []
+    rows = np.loadtxt(f, comments="#", ndmin=2)
+    if rows.shape[1] != 2 or rows.shape[0] != len(est_ts):
+        raise ValueError(f"{f}: expected one 'timestamp segment' line per pose of {opts['est']} ({len(est_ts)})")
+    seg = rows[:, 1].astype(np.int64)
+    out = []
+    for k in np.unique(seg):
+        mk = seg == k
+        r = {"segment": int(k), "poses": int(mk.sum())}
+        try:
+            r.update(ev.trajectory_metrics(est_ts[mk], est_T[mk], gt_ts, gt_T))
+        except ValueError as e:
+            r["eval_error"] = str(e)
+        out.append(r)
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:

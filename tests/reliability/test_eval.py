@@ -48,3 +48,27 @@ def test_nanosecond_timestamps_in_a_tum_file_are_one_clear_error(tmp_path, capsy
     err = capsys.readouterr().err
     assert e.value.code == 2 and "Traceback" not in err
     assert "ns.txt:1: timestamp 1403636579763555584 is not in seconds (nanoseconds?)" in err
+
+
+def test_segments_in_their_own_frames_are_scored_one_by_one(tmp_path, capsys):
+    """After a re-initialisation from scratch the estimate continues in a new frame: the whole-trajectory ATE
+    mixes frames, each segment alone is exact."""
+    import numpy as np
+
+    from runtime.geometry import make_T
+
+    ts, T = circle_trajectory(141)
+    write_tum(tmp_path / "gt.txt", ts, T)
+    est = T.copy()
+    est[70:] = make_T(t=[3.0, -2.0, 0.5]) @ T[70:]  # segment 1 in another frame
+    write_tum(tmp_path / "trajectory.txt", ts, est)
+    seg = np.r_[np.zeros(70), np.ones(71)]
+    (tmp_path / "trajectory_segments.txt").write_text("".join(f"{t * 1e-9:.9f} {int(s)}\n" for t, s in zip(ts, seg, strict=True)))
+    eval_main(
+        ["trajectory", f"est={tmp_path / 'trajectory.txt'}", f"gt={tmp_path / 'gt.txt'}", f"out={tmp_path / 'ev'}"]
+    )
+    m = json.loads((tmp_path / "ev" / "trajectory_metrics.json").read_text())
+    assert m["ate_se3_rmse_m"] > 0.5  # mixed frames
+    assert [s["segment"] for s in m["segments"]] == [0, 1]
+    assert all(s["ate_se3_rmse_m"] < 1e-6 for s in m["segments"])
+    assert "2 segments, each in its own frame" in capsys.readouterr().out

@@ -63,7 +63,9 @@ def test_segments_in_their_own_frames_are_scored_one_by_one(tmp_path, capsys):
     est[70:] = make_T(t=[3.0, -2.0, 0.5]) @ T[70:]  # segment 1 in another frame
     write_tum(tmp_path / "trajectory.txt", ts, est)
     seg = np.r_[np.zeros(70), np.ones(71)]
-    (tmp_path / "trajectory_segments.txt").write_text("".join(f"{t * 1e-9:.9f} {int(s)}\n" for t, s in zip(ts, seg, strict=True)))
+    (tmp_path / "trajectory_segments.txt").write_text(
+        "".join(f"{t * 1e-9:.9f} {int(s)}\n" for t, s in zip(ts, seg, strict=True))
+    )
     eval_main(
         ["trajectory", f"est={tmp_path / 'trajectory.txt'}", f"gt={tmp_path / 'gt.txt'}", f"out={tmp_path / 'ev'}"]
     )

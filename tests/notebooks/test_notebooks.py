@@ -241,8 +241,8 @@ def test_04_textureless_tiny(tmp_path, sim_cache):
     for f in fig4.values():
         assert sum(f["n_per_cell"]) == n_consis and sum(f["gamma"]) == pytest.approx(1.0)
         c, n = np.array(f["counts"]), np.array(f["n_per_cell"])
-        if c.sum():  # the cell with the most features gets the fewest samples
-            assert n[np.argmax(c)] == n.min()
+        if c.sum():  # a cell with the most features gets the fewest samples (equal counts may round apart)
+            assert n[c == c.max()].min() == n.min(), (c.tolist(), n.tolist())
     assert sum(fig4["white wall"]["counts"]) < sum(fig4["textured"]["counts"])
     for png in ("fig11_maps.png", "fig4_sampling.png"):
         assert (out / png).stat().st_size > 1000, png

@@ -214,9 +214,10 @@ class SlamSystem:
         if seg is None:
             return None
         gyro, acc, dt, gap, prev = seg
-        if self.initialized and max(gap, self.imu.since_last(ts)) > self.cfg.imu_gap_max_s:
-            return self._gap_reset(ts, max(gap, self.imu.since_last(ts)))
-        if self.initialized and self.imu.since_last(ts) > self.cfg.imu_gap_reinit_s:
+        since = self.imu.since_last(ts)  # > 0 inside a gap, before the IMU resumes
+        if self.initialized and max(gap, since) > self.cfg.imu_gap_max_s:
+            return self._gap_reset(ts, max(gap, since))
+        if self.initialized and since > self.cfg.imu_gap_reinit_s:
             integrate(self.pim, gyro, acc, dt)  # inside an IMU gap: the propagation is stale, no pose
             return None
         bias = self.backend.latest.bias if self.initialized else np.zeros(6)

@@ -4,6 +4,8 @@ The exported modules are tensors in, tensors out (STYLE.md "Export"):
 
 * ``prior.onnx``: ``image`` [1, Cin, H, W] (image channels in [0, 1], then the sparse depth channel in metres for the
   ``*s`` modalities) -> ``uncertainty`` [1, 1, H, W] (metres) and the conditioning features ``feat0 .. featN``.
+  A relative network also takes ``fill`` [1, 1, H, W] (metres): the interpolated sparse channel,
+  ``runtime.densify.interpolate_sparse``, computed outside the graph.
 * ``decoder.onnx``: ``code`` [B, C] + ``feat0 .. featN`` (batch 1, broadcast inside) -> ``depth`` [B, 1, H, W] (metres).
   The batch is symbolic: the runtime sends 1 code, or 8 perturbed codes for the finite-difference Jacobian (Eq. 17).
 
@@ -34,15 +36,24 @@ DEFAULT_DELTA = 1e-2
 
 
 class PriorGraph(nn.Module):
-    """``image -> (uncertainty, *features)``: the part that runs once per keyframe."""
+    """``image [, fill] -> (uncertainty, *features)``: the part that runs once per keyframe."""
 
     def __init__(self, net: nn.Module):
         super().__init__()
         self.net = net
 
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        uncertainty, features = self.net.prior(image)
+    def forward(self, image: torch.Tensor, fill: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        uncertainty, features = self.net.prior(image) if fill is None else self.net.prior(image, fill)
         return (uncertainty, *features)
+
+
+def prior_inputs(net: nn.Module, image: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The prior graph's inputs for ``image``: ``image``, plus ``fill`` for a relative network."""
+    if not getattr(net, "relative", False):
+        return {"image": image}
+    from models.blocks import linear_fill
+
+    return {"image": image, "fill": linear_fill(image[:, -1:])}
 
 
 class DecoderGraph(nn.Module):
@@ -136,8 +147,9 @@ def parity_check(
     max_depth, max_unc, max_feat = 0.0, 0.0, 0.0
     with torch.no_grad():
         for image in inputs:
-            unc_t, feats_t = net.prior(image)
-            outs = prior.run(None, {"image": image.numpy()})
+            feed_t = prior_inputs(net, image)
+            unc_t, feats_t = net.prior(*feed_t.values())
+            outs = prior.run(None, {k: v.numpy() for k, v in feed_t.items()})
             max_unc = max(max_unc, float(np.abs(outs[0] - unc_t.numpy()).max()))
             for a, b in zip(outs[1:], feats_t, strict=True):
                 max_feat = max(max_feat, float(np.abs(a - b.numpy()).max()))
@@ -257,7 +269,10 @@ def _export_into(net, out_dir: Path, modality, height, width, opset, delta, n_pa
     feat_names = [f"feat{i}" for i in range(n_feat)]
 
     prior_path, decoder_path = out_dir / "prior.onnx", out_dir / "decoder.onnx"
-    _export(PriorGraph(net).eval(), (image,), prior_path, ["image"], ["uncertainty", *feat_names], None, opset)
+    feed = prior_inputs(net, image)
+    _export(
+        PriorGraph(net).eval(), tuple(feed.values()), prior_path, list(feed), ["uncertainty", *feat_names], None, opset
+    )
     batch = torch.export.Dim("batch", min=1, max=256)
     codes = torch.zeros(8, code_dim)  # traced at B = 8, the Jacobian batch
     _export(

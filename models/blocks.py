@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -85,9 +86,7 @@ class ConvBNReLU(nn.Sequential):
 
     def __init__(self, in_ch: int, out_ch: int, kernel: int = 1, stride: int = 1, groups: int = 1):
         if not (groups == in_ch or kernel == 1):
-            raise ValueError(
-                f"dense {kernel}x{kernel} conv ({in_ch}->{out_ch}): only depthwise or 1x1 allowed"
-            )
+            raise ValueError(f"dense {kernel}x{kernel} conv ({in_ch}->{out_ch}): only depthwise or 1x1 allowed")
         super().__init__(
             nn.Conv2d(in_ch, out_ch, kernel, stride, padding=kernel // 2, groups=groups, bias=False),
             nn.BatchNorm2d(out_ch),
@@ -168,9 +167,7 @@ class ChannelAttention(nn.Module):
     def __init__(self, channels: int, reduction: int = 8, min_hidden: int = 4):
         super().__init__()
         hidden = max(channels // reduction, min_hidden)
-        self.mlp = nn.Sequential(
-            nn.Linear(channels, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, channels)
-        )
+        self.mlp = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, channels))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         avg = self.mlp(x.mean(dim=(2, 3)))  # (B, C)
@@ -279,71 +276,50 @@ class InputNorm(nn.Module):
         return torch.cat([img, *self.depth_log(x[:, self.image_channels :])], dim=1)
 
 
-class SparseFill(nn.Module):
-    """Sparse depth -> (dense fill, sample mask, scale): mask-normalised push-pull, plain pool/resize ops.
+def sample_scale(sparse: torch.Tensor, default_depth: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sparse depth (B, 1, H, W) [m, 0 = none] -> (sample mask, scale (B, 1, 1, 1) [m]).
 
-    Pull: the sample map ``v = sparse * mask`` and the mask ``w`` are average-pooled ``levels`` times by 2.
-    Push: starting from the global mean of the samples (``sum v / sum w``), each finer level takes its own
-    normalised value ``v_k / w_k`` in the cells that hold a sample and the bilinearly upsampled coarser fill
-    elsewhere. The result equals the samples at sampled pixels, the constant for a constant input, and is linear
-    in the sample depths, so the fill of ``2 * sparse`` is twice the fill of ``sparse``.
+    The scale is the geometric mean of the samples ``exp(mean log d)``, ``default_depth`` without samples.
 
-    The scale is the geometric mean of the samples ``exp(mean log d)`` [m] (``default_depth`` without samples,
-    when the fill is that constant too). Everything is exported inside ``prior.onnx``: the runtime feeds the raw
-    sparse depth.
-
-    Args:
-        levels: pooling levels (H and W must be multiples of ``2 ** levels``).
-        default_depth: scale and fill [m] of an input without samples.
-
-    >>> f = SparseFill(levels=2)
     >>> sp = torch.zeros(1, 1, 4, 4); sp[0, 0, 0, 0] = 2.0; sp[0, 0, 3, 3] = 8.0
-    >>> fill, mask, scale = f(sp)
-    >>> float(scale), float(fill[0, 0, 0, 0]), float(fill[0, 0, 3, 3]), int(mask.sum())
-    (4.0, 2.0, 8.0, 2)
+    >>> mask, scale = sample_scale(sp)
+    >>> int(mask.sum()), float(scale)
+    (2, 4.0)
     """
+    mask = (sparse > 0).to(sparse.dtype)
+    n = mask.sum(dim=(2, 3), keepdim=True)
+    logsum = (torch.log(sparse.clamp(min=1e-6)) * mask).sum(dim=(2, 3), keepdim=True)
+    scale = torch.where(n > 0, torch.exp(logsum / n.clamp(min=1.0)), torch.full_like(n, float(default_depth)))
+    return mask, scale
 
-    def __init__(self, levels: int = 5, default_depth: float = 2.0):
-        super().__init__()
-        if levels < 0:
-            raise ValueError(f"levels={levels} must be >= 0")
-        self.levels = int(levels)
-        self.default_depth = float(default_depth)
 
-    def forward(self, sparse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        mask = (sparse > 0).to(sparse.dtype)  # (B, 1, H, W)
-        v = sparse * mask
-        n = mask.sum(dim=(2, 3), keepdim=True)  # (B, 1, 1, 1)
-        has = n > 0
-        logsum = (torch.log(sparse.clamp(min=1e-6)) * mask).sum(dim=(2, 3), keepdim=True)
-        default = torch.full_like(n, self.default_depth)
-        scale = torch.where(has, torch.exp(logsum / n.clamp(min=1.0)), default)
-        mean = torch.where(has, v.sum(dim=(2, 3), keepdim=True) / n.clamp(min=1.0), default)
-        ws, vs = [mask], [v]
-        for _ in range(self.levels):
-            ws.append(nn.functional.avg_pool2d(ws[-1], 2))
-            vs.append(nn.functional.avg_pool2d(vs[-1], 2))
-        fill = mean.expand_as(vs[-1])
-        for k in range(self.levels, -1, -1):
-            w, val = ws[k], vs[k]
-            if fill.shape[-2:] != w.shape[-2:]:
-                fill = nn.functional.interpolate(fill, size=w.shape[-2:], mode="bilinear", align_corners=False)
-            a = (w * float(4**k)).clamp(max=1.0)  # 1 in every cell that holds a sample
-            fill = a * (val / w.clamp(min=1e-12)) + (1.0 - a) * fill
-        return fill, mask, scale
+def linear_fill(sparse: torch.Tensor) -> torch.Tensor:
+    """Sparse depth (B, 1, H, W) [m] -> its interpolation (B, 1, H, W) [m], no gradient.
+
+    :func:`runtime.densify.network_fill` per image (linear over the samples' triangulation, nearest outside
+    their hull; a constant without samples). Computed with scipy on the CPU: it is an input of the relative
+    network (``prior.onnx`` takes it as ``fill``), not part of the graph.
+    """
+    from runtime.densify import network_fill
+
+    if sparse.dim() != 4 or sparse.shape[1] != 1:
+        raise ValueError(f"sparse must have shape (B, 1, H, W), got {tuple(sparse.shape)}")
+    out = np.stack([network_fill(x) for x in sparse.detach().float().cpu().numpy()[:, 0]])
+    return torch.from_numpy(out)[:, None].to(sparse.device, sparse.dtype)
 
 
 class RelativeSparseNorm(nn.Module):
-    """Raw ``*s`` input -> encoder input in units of the samples' scale, plus the fill and the scale.
+    """Raw ``*s`` input + its fill -> encoder input in units of the samples' scale, plus the scale.
 
     Output channels: ``(image - mean) / std``, then ``log(sparse / scale)`` at samples (0 elsewhere, clamped to
-    +-``log_range``), the sample mask, and ``log(fill / scale)`` of :class:`SparseFill`. None of them changes
-    when every depth is multiplied by the same factor: the network sees relative depth only.
+    +-``log_range``), the sample mask, and ``log(fill / scale)``, the fill being :func:`linear_fill` of the sparse
+    channel. None of them changes when every depth is multiplied by the same factor: the network sees relative
+    depth only.
 
-    ``forward`` returns ``(x, fill (B, 1, H, W) [m], scale (B, 1, 1, 1) [m])``.
+    ``forward(x, fill)`` returns ``(x, scale (B, 1, 1, 1) [m])``.
     """
 
-    def __init__(self, modality: str, levels: int = 5, log_range: float = 3.0):
+    def __init__(self, modality: str, log_range: float = 3.0):
         super().__init__()
         if modality not in MODALITY_CHANNELS or not modality.endswith("s"):
             raise ValueError(f"relative depth needs a sparse modality (grays, rgbs), got {modality!r}")
@@ -353,18 +329,17 @@ class RelativeSparseNorm(nn.Module):
         self.image_channels = 3 if rgb else 1
         self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
         self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
-        self.fill = SparseFill(levels)
         self.log_range = float(log_range)
         self.out_channels = self.image_channels + 3
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, fill: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         img = (x[:, : self.image_channels] - self.mean) / self.std
         sparse = x[:, self.image_channels : self.image_channels + 1]
-        fill, mask, scale = self.fill(sparse)
+        mask, scale = sample_scale(sparse)
         r = self.log_range
         rel = torch.log(sparse.clamp(min=1e-6) / scale).clamp(-r, r) * mask
         rel_fill = torch.log(fill.clamp(min=1e-6) / scale).clamp(-r, r)
-        return torch.cat([img, rel, mask, rel_fill], dim=1), fill, scale
+        return torch.cat([img, rel, mask, rel_fill], dim=1), scale
 
 
 class LogDepthNorm(nn.Module):
@@ -432,11 +407,12 @@ __all__ = [
     "MobileNetEncoder",
     "RelativeSparseNorm",
     "SKFusion",
-    "SparseFill",
     "SpatialAttention",
     "UpBlock",
     "check_size",
     "init_weights",
+    "linear_fill",
     "modality_of",
+    "sample_scale",
     "scaled_channels",
 ]

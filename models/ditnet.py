@@ -15,10 +15,12 @@ Conventions (also reported by :meth:`DiTNet.describe` for the export manifest):
 * Depth: ``depth = depth_min * (depth_max / depth_min) ** sigmoid(x)`` metres, default range (0.1, 20) m,
   smooth in the code (no clipping). Uncertainty: ``B = uncertainty_min + softplus(x)`` metres (the scale of
   the Laplace likelihood in Eq. 6), ``uncertainty_min = 0.01`` m.
-* Relative depth (``relative=True``, sparse modalities): the sparse channel is densified inside the network
-  (:class:`~models.blocks.SparseFill`: mask-normalised push-pull) and divided by the samples' scale (their
-  geometric mean); the encoder sees the image, ``log(sparse / scale)``, the sample mask and
-  ``log(fill / scale)``. The decoder predicts a bounded log correction of the fill:
+* Relative depth (``relative=True``, sparse modalities): the fill is the linear interpolation of the sparse
+  channel (:func:`~models.blocks.linear_fill`, the tables' interpolation reference), an input of the prior next to
+  the image (``prior(image, fill)``; computed from the sparse channel when not given; ``prior.onnx`` takes it as
+  ``fill``). Depths are divided by the samples' scale (their geometric mean); the encoder sees the image,
+  ``log(sparse / scale)``, the sample mask and ``log(fill / scale)``. The decoder predicts a bounded log
+  correction of the fill:
   ``depth = fill * exp(K tanh(x / K))``, ``K = REL_LOG_RANGE``; the uncertainty is ``scale * (u_rel + softplus)``.
   The fill travels to the decoder as the last channel of the stride-1 feature (``log fill``, metres), so the
   exported graphs keep their interface. Multiplying every input depth by ``a`` multiplies depth and
@@ -47,6 +49,7 @@ from models.blocks import (
     UpBlock,
     check_size,
     init_weights,
+    linear_fill,
     modality_of,
     scaled_channels,
 )
@@ -71,8 +74,7 @@ def _check_input(x: torch.Tensor, name: str, channels: int, height: int, width: 
         raise ValueError(
             f"{name} must have shape (B, {channels}, {height}, {width}), got {tuple(x.shape)}"
             + (
-                f"; the network was built for {height}x{width}, rebuild it for another size"
-                f" (any multiple of 32)"
+                f"; the network was built for {height}x{width}, rebuild it for another size (any multiple of 32)"
                 if x.dim() == 4 and x.shape[1] == channels
                 else ""
             )
@@ -107,19 +109,19 @@ class UNetStream(nn.Module):
         self.channels = tuple(dec)
         enc = self.encoder.channels  # strides 2, 4, 8, 16, 32
         # 1x1 projections: stride 32 (the start), then skips at strides 16, 8, 4, 2.
-        self.proj = nn.ModuleList(
-            [ConvBNReLU(enc[4], dec[0])] + [ConvBNReLU(enc[3 - i], dec[1 + i]) for i in range(4)]
-        )
+        self.proj = nn.ModuleList([ConvBNReLU(enc[4], dec[0])] + [ConvBNReLU(enc[3 - i], dec[1 + i]) for i in range(4)])
         self.ups = nn.ModuleList([UpBlock(dec[i], dec[i + 1]) for i in range(5)])
         self.fuse = nn.ModuleList([(SKFusion(c) if attention else AddFusion()) for c in dec[1:5]])
         self.cbam = nn.ModuleList([(CBAM(c) if attention else nn.Identity()) for c in dec])
         self.head = nn.Conv2d(dec[5], 1, 1)
 
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    def forward(
+        self, image: torch.Tensor, fill: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         if self.relative:
-            x, fill, scale = self.norm(image)
+            x, scale = self.norm(image, fill)
         else:
-            x, fill, scale = self.norm(image), None, None
+            x, scale = self.norm(image), None
         e = self.encoder(x)  # strides 2, 4, 8, 16, 32
         x = self.cbam[0](self.proj[0](e[4]))  # (B, dec0, H/32, W/32)
         feats = [x]
@@ -205,14 +207,11 @@ class DepthDecoder(nn.Module):
         self.grid = (height // 32, width // 32)
         extra = [0] * (len(channels) - 1) + [1 if relative else 0]  # relative: log fill at stride 1
         self.feature_shapes = tuple(
-            (c + e, height // s, width // s)
-            for c, e, s in zip(channels, extra, FEATURE_STRIDES, strict=True)
+            (c + e, height // s, width // s) for c, e, s in zip(channels, extra, FEATURE_STRIDES, strict=True)
         )
         self.fc = nn.Linear(code_dim, channels[0] * self.grid[0] * self.grid[1])
         # code -> per-channel bias at strides 16..1 (see the class docstring)
-        self.inject = (
-            nn.ModuleList([nn.Linear(code_dim, c) for c in channels[1:]]) if code_injection else None
-        )
+        self.inject = nn.ModuleList([nn.Linear(code_dim, c) for c in channels[1:]]) if code_injection else None
         self.fuse = nn.ModuleList([(SKFusion(c) if attention else AddFusion()) for c in channels])
         self.cbam = nn.ModuleList([(CBAM(c) if attention else nn.Identity()) for c in channels])
         self.ups = nn.ModuleList([UpBlock(channels[i], channels[i + 1]) for i in range(len(channels) - 1)])
@@ -307,9 +306,7 @@ class DiTNet(nn.Module):
         )
         ch = self.prior_net.channels
         gt_range = REL_GT_RANGE if relative else (depth_min, depth_max)
-        self.recognition = DepthRecognition(
-            code_dim, ch[0], height, width, width_mult * depth_encoder_width, *gt_range
-        )
+        self.recognition = DepthRecognition(code_dim, ch[0], height, width, width_mult * depth_encoder_width, *gt_range)
         self.decoder = DepthDecoder(
             code_dim, ch, height, width, attention, depth_min, depth_max, code_injection, relative
         )
@@ -337,10 +334,23 @@ class DiTNet(nn.Module):
         """(C, H, W) of each conditioning feature, strides 32, 16, 8, 4, 2, 1."""
         return self.decoder.feature_shapes
 
-    def prior(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        """UNet stream: raw input (B,Cin,H,W) -> (uncertainty (B,1,H,W) [m], 6 features (B,C_s,H/s,W/s))."""
+    def prior(
+        self, image: torch.Tensor, fill: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """UNet stream: raw input (B,Cin,H,W) -> (uncertainty (B,1,H,W) [m], 6 features (B,C_s,H/s,W/s)).
+
+        ``fill`` (B, 1, H, W) [m], relative mode only: the interpolated sparse channel; default
+        :func:`~models.blocks.linear_fill` of it.
+        """
         _check_input(image, "image", self.in_channels, self.height, self.width)
-        return self.prior_net(image)
+        if not self.relative:
+            if fill is not None:
+                raise ValueError("only a relative DiTNet takes a fill")
+            return self.prior_net(image)
+        if fill is None:
+            fill = linear_fill(image[:, -1:])
+        _check_input(fill, "fill", 1, self.height, self.width)
+        return self.prior_net(image, fill)
 
     def encode(
         self, gt_depth: torch.Tensor, cond: torch.Tensor, features: tuple[torch.Tensor, ...] | None = None
@@ -358,7 +368,11 @@ class DiTNet(nn.Module):
         return self.recognition(gt_depth, cond)
 
     def forward(
-        self, image: torch.Tensor, gt_depth: torch.Tensor | None = None, code: torch.Tensor | None = None
+        self,
+        image: torch.Tensor,
+        gt_depth: torch.Tensor | None = None,
+        code: torch.Tensor | None = None,
+        fill: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor | None]:
         """Run both streams.
 
@@ -367,12 +381,13 @@ class DiTNet(nn.Module):
             gt_depth: (B, 1, H, W) ground-truth depth [m] (0 = invalid), training only. When given the code is
                 sampled ``mu + sigma * eps`` in train mode and is ``mu`` in eval mode.
             code: (B, C) code to decode when ``gt_depth`` is None; default zeros (the prior mean).
+            fill: relative mode: the interpolated sparse channel (see :meth:`prior`).
 
         Returns:
             dict with ``depth`` (B, 1, H, W) [m], ``uncertainty`` (B, 1, H, W) [m], ``mu`` and ``logvar``
             (B, C) or None without ``gt_depth``, ``code`` (B, C) the code that was decoded.
         """
-        uncertainty, feats = self.prior(image)
+        uncertainty, feats = self.prior(image, fill)
         b = image.shape[0]
         mu = logvar = None
         if gt_depth is not None:
@@ -408,8 +423,10 @@ class DiTNet(nn.Module):
                 "image_mean": norm.mean.flatten().tolist(),
                 "image_std": norm.std.flatten().tolist(),
                 "sparse_depth": "metres, 0 = no sample" if norm.sparse else None,
+                "fill": "linear" if self.relative else None,
                 "sparse_normalisation": (
-                    "push-pull fill of the samples, divided by their geometric mean, inside prior.onnx"
+                    "linear interpolation of the samples (runtime.densify.interpolate_sparse), prior.onnx input "
+                    "'fill'; depths divided by the samples' geometric mean inside prior.onnx"
                     if self.relative
                     else None
                 ),

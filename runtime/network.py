@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from runtime.densify import network_fill
+
 MODALITY_CHANNELS = {"rgb": 3, "rgbs": 4, "gray": 1, "grays": 2}
 RUNTIME_MODALITIES = ("gray", "grays")  # the SLAM runtime feeds grey cam0 images (runtime.dense.DenseMapper)
 
@@ -162,6 +164,8 @@ class DepthNetwork:
                 f"{self.dir / m['prior']['file']}: input shape {image_shape} does not match the manifest's "
                 f"{self.in_channels} channels of {self.height}x{self.width}"
             )
+        #: relative model: prior.onnx also takes ``fill``, the interpolated sparse depth (runtime.densify)
+        self.takes_fill = [i.name for i in self._prior.get_inputs()] == ["image", "fill"]
         self.decoder_calls = 0  # counts ORT decoder runs (tests and benchmarks read it)
 
     @property
@@ -223,7 +227,11 @@ class DepthNetwork:
     # ------------------------------------------------------------------ graphs
     def prior(self, image: np.ndarray, sparse: np.ndarray | None = None, cache_size: int = 4) -> KeyframeDepth:
         """Run ``prior.onnx`` once for a keyframe; the result decodes codes and caches them."""
-        outs = self._prior.run(None, {"image": self.make_input(image, sparse)})
+        x = self.make_input(image, sparse)
+        feed = {"image": x}
+        if self.takes_fill:
+            feed["fill"] = network_fill(x[0, -1])[None, None]
+        outs = self._prior.run(None, feed)
         feed = dict(zip(self.feature_names, outs[1:], strict=True))
         return KeyframeDepth(self, outs[0][0, 0], feed, cache_size=cache_size)
 

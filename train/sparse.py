@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from runtime.densify import interpolate_sparse
+
 __all__ = ["SparseConfig", "fast_corners", "interpolate_sparse", "sample_sparse_depth", "MIN_SPARSE_DEPTH"]
 
 #: Smallest sparse depth [m] written after adding noise (0 means "no sample").
@@ -154,46 +156,3 @@ def sample_sparse_depth(
     sparse = np.zeros((h, w), np.float32)
     sparse[uv[:, 1], uv[:, 0]] = values
     return sparse, uv
-
-
-def interpolate_sparse(sparse: np.ndarray) -> np.ndarray:
-    """The reference densification: linear interpolation of the samples, nearest sample outside their hull.
-
-    ``scipy.interpolate.griddata`` over the Delaunay triangulation of the sampled pixels (``linear``), and
-    ``nearest`` where that is undefined. Every depth table compares the network against this row: a network
-    with sparse input has to beat what its own input gives without it.
-
-    Args:
-        sparse: (H, W) float [m], 0 = no sample.
-
-    Returns:
-        (H, W) float32 [m]; all zeros when there is no sample, the constant when there is one.
-
-    >>> s = np.zeros((3, 5), np.float32); s[1, 0], s[1, 4] = 1.0, 3.0
-    >>> interpolate_sparse(s)[1].tolist()  # two points: no hull, nearest
-    [1.0, 1.0, 1.0, 3.0, 3.0]
-    >>> s = np.zeros((3, 3), np.float32); s[0, 0], s[0, 2], s[2, 0], s[2, 2] = 1.0, 1.0, 3.0, 3.0
-    >>> interpolate_sparse(s)[1].tolist()  # rows 0 and 2 bound the hull, row 1 halfway
-    [2.0, 2.0, 2.0]
-    """
-    from scipy.interpolate import griddata
-
-    if sparse.ndim != 2:
-        raise ValueError(f"sparse must be (H, W), got shape {sparse.shape}")
-    h, w = sparse.shape
-    v, u = np.nonzero(sparse > 0)
-    if len(u) == 0:
-        return np.zeros((h, w), np.float32)
-    vals = sparse[v, u].astype(np.float64)
-    if len(u) == 1:
-        return np.full((h, w), vals[0], np.float32)
-    gv, gu = np.mgrid[0:h, 0:w]
-    pts = np.stack([u, v], axis=1).astype(np.float64)
-    near = griddata(pts, vals, (gu, gv), method="nearest")
-    if len(u) < 3:
-        return near.astype(np.float32)
-    try:
-        lin = griddata(pts, vals, (gu, gv), method="linear")
-    except Exception:  # scipy's QhullError: all points on a line
-        return near.astype(np.float32)
-    return np.where(np.isfinite(lin), lin, near).astype(np.float32)

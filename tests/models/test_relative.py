@@ -1,12 +1,13 @@
-"""Relative-depth DiT: the in-graph densification and normalisation (known answers), scale equivariance,
-and torch vs ONNX Runtime agreement of both."""
+"""Relative-depth DiT: the densification it corrects and the normalisation (known answers), scale equivariance,
+and torch vs ONNX Runtime agreement of both (the runtime computes the fill the same way)."""
 
 import numpy as np
 import pytest
 import torch
 
 from models import build_model
-from models.blocks import RelativeSparseNorm, SparseFill
+from models.blocks import RelativeSparseNorm, linear_fill, sample_scale
+from runtime.densify import DEFAULT_FILL_M
 
 torch.set_num_threads(1)
 
@@ -19,58 +20,48 @@ def _sparse(b=2, seed=0, p=0.03, lo=0.5, hi=5.0, h=H, w=W):
     return keep * (lo + (hi - lo) * torch.rand(b, 1, h, w, generator=g))
 
 
-def test_fill_constant_single_and_samples_kept():
-    f = SparseFill(levels=5)
+def test_fill_constant_single_samples_kept_and_linear():
     sp = _sparse()
     const = (sp > 0) * 3.0
-    fill, mask, scale = f(const)
-    assert torch.allclose(fill, torch.full_like(fill, 3.0), atol=1e-5)
-    assert torch.allclose(scale, torch.full_like(scale, 3.0), atol=1e-5)
+    assert torch.allclose(linear_fill(const), torch.full_like(sp, 3.0), atol=1e-6)
     one = torch.zeros(1, 1, H, W)
     one[0, 0, 10, 20] = 1.7
-    fill1, mask1, _ = f(one)
-    assert int(mask1.sum()) == 1 and torch.allclose(fill1, torch.full_like(fill1, 1.7), atol=1e-6)
-    fill, mask, _ = f(sp)
+    assert torch.allclose(linear_fill(one), torch.full_like(one, 1.7))
+    fill = linear_fill(sp)
     hit = sp > 0
-    assert torch.allclose(fill[hit], sp[hit], atol=1e-5)  # the samples themselves are kept
-    assert float(fill.min()) >= float(sp[hit].min()) - 1e-5 and float(fill.max()) <= float(sp.max()) + 1e-5
+    assert torch.allclose(fill[hit], sp[hit], atol=1e-6)  # the samples themselves are kept
+    assert float(fill.min()) >= float(sp[hit].min()) - 1e-6 and float(fill.max()) <= float(sp.max()) + 1e-6
+    assert torch.allclose(linear_fill(2.5 * sp), 2.5 * fill, rtol=1e-6)  # linear in the depths
+    # a plane sampled at scattered pixels (corners included) is reproduced exactly
+    gv, gu = torch.meshgrid(torch.arange(float(H)), torch.arange(float(W)), indexing="ij")
+    plane = 1.0 + 0.02 * gu + 0.01 * gv
+    keep = _sparse(1, seed=5) > 0
+    keep[..., 0, 0] = keep[..., 0, -1] = keep[..., -1, 0] = keep[..., -1, -1] = True
+    torch.testing.assert_close(linear_fill(plane * keep)[0, 0], plane, rtol=1e-5, atol=1e-5)
 
 
 def test_fill_no_samples_and_geometric_scale():
-    f = SparseFill(levels=3, default_depth=2.0)
-    fill, mask, scale = f(torch.zeros(1, 1, 32, 32))
-    assert float(mask.sum()) == 0 and torch.allclose(fill, torch.full_like(fill, 2.0))
-    assert float(scale) == pytest.approx(2.0)
+    fill = linear_fill(torch.zeros(1, 1, 32, 32))
+    assert torch.allclose(fill, torch.full_like(fill, DEFAULT_FILL_M))
+    mask, scale = sample_scale(torch.zeros(1, 1, 32, 32))
+    assert float(mask.sum()) == 0 and float(scale) == pytest.approx(DEFAULT_FILL_M)
     sp = torch.zeros(1, 1, 32, 32)
     sp[0, 0, 1, 1], sp[0, 0, 30, 30], sp[0, 0, 5, 25] = 1.0, 4.0, 2.0
-    assert float(f(sp)[2]) == pytest.approx(2.0, rel=1e-6)  # (1 * 4 * 2) ** (1/3)
-
-
-def test_fill_is_linear_in_depth_and_between_neighbours():
-    f = SparseFill(levels=5)
-    sp = _sparse(seed=3)
-    a, _, sa = f(sp)
-    b, _, sb = f(2.5 * sp)
-    assert torch.allclose(b, 2.5 * a, rtol=1e-5) and torch.allclose(sb, 2.5 * sa, rtol=1e-5)
-    # a left half at 1 m, a right half at 3 m: the fill stays 1 far left, 3 far right
-    sp = torch.zeros(1, 1, 64, 64)
-    sp[0, 0, ::8, 2:28:8] = 1.0
-    sp[0, 0, ::8, 36:64:8] = 3.0
-    fill = f(sp)[0][0, 0]
-    assert torch.allclose(fill[:, :8], torch.ones(64, 8), atol=1e-4)
-    assert torch.allclose(fill[:, 56:], torch.full((64, 8), 3.0), atol=1e-4)
+    assert float(sample_scale(sp)[1]) == pytest.approx(2.0, rel=1e-6)  # (1 * 4 * 2) ** (1/3)
+    with pytest.raises(ValueError, match="B, 1, H, W"):
+        linear_fill(torch.zeros(1, 2, 8, 8))
 
 
 def test_relative_norm_is_scale_free():
     norm = RelativeSparseNorm("grays")
     x = torch.cat([torch.rand(2, 1, H, W), _sparse()], 1)
-    y, fill, scale = norm(x)
+    y, scale = norm(x, linear_fill(x[:, -1:]))
     x2 = x.clone()
     x2[:, -1] *= 2.0
-    y2, fill2, scale2 = norm(x2)
+    y2, scale2 = norm(x2, linear_fill(x2[:, -1:]))
     assert y.shape == (2, 4, H, W)
     assert torch.allclose(y, y2, atol=1e-5)
-    assert torch.allclose(fill2, 2 * fill, rtol=1e-5) and torch.allclose(scale2, 2 * scale, rtol=1e-5)
+    assert torch.allclose(scale2, 2 * scale, rtol=1e-5)
     with pytest.raises(ValueError, match="sparse modality"):
         RelativeSparseNorm("gray")
 
@@ -147,9 +138,10 @@ def test_onnx_agrees_on_fill_scale_and_depth(tmp_path):
     with torch.no_grad():
         unc_t, feats = net.prior(x)
         d_t = net.decoder(torch.from_numpy(code[None]), *feats)[0, 0].numpy()
-        fill_t = net.prior_net.norm.fill(x[:, 1:])[0][0, 0].numpy()
+        fill_t = linear_fill(x[:, 1:])[0, 0].numpy()
     log_fill_o = kf.features[dn.feature_names[-1]][0, -1]
-    np.testing.assert_allclose(np.exp(log_fill_o), fill_t, rtol=1e-5)  # densification in the graph
+    assert dn.takes_fill
+    np.testing.assert_allclose(np.exp(log_fill_o), fill_t, rtol=1e-5)  # the runtime feeds the same fill
     np.testing.assert_allclose(kf.depth(code), d_t, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(kf.uncertainty, unc_t[0, 0].numpy(), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(kf2.depth(code), 2 * kf.depth(code), rtol=1e-4)  # the scale test, in ONNX

@@ -1,11 +1,13 @@
 """Depth metrics of an exported model (ONNX Runtime, code c = 0) on regenerated synthetic validation frames.
 
-    python benchmarks/eval_onnx_depth.py --model runtime/assets/default_model [--n-val 20] [--seed 0] [--out F.json]
+    python benchmarks/eval_onnx_depth.py --model runtime/assets/default_model [--n-val 20] [--seed 0] [--realism]
+        [--out F.json]
 
-The frames come from ``sim.nyu.write_nyu_dataset(n_train=1, n_val=N, seed=S)`` (validation rooms are drawn from their
-own seed branch, never seen in training), are prepared by training's evaluation transform (resize + centre crop, 125
-FAST corners without noise for the ``*s`` modalities) and decoded at the prior mean. The shipped model records these
-figures in its folder (``val_metrics.json``); ``tests/test_default_model.py`` regenerates the frames and checks them.
+The frames come from ``sim.nyu.write_nyu_dataset(n_train=1, n_val=N, seed=S, realism=R)`` (validation rooms are drawn
+from their own seed branch, never seen in training), are prepared by training's evaluation transform (resize + centre
+crop, 125 FAST corners without noise for the ``*s`` modalities) and decoded at the prior mean. The shipped model
+records these figures in its folder (``val_metrics.json``); ``tests/test_default_model.py`` regenerates the frames
+and checks them.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ def onnx_depth_metrics(
     seed: int = 0,
     data_root: str | Path | None = None,
     progress: bool = False,
+    realism: bool = False,
 ) -> dict:
     """Mean per-image metrics (RMSE, iRMSE, AbsRel, MAE, MAPE, delta1-3) and ms/frame of ``model_dir``."""
     import torch
@@ -41,7 +44,9 @@ def onnx_depth_metrics(
         root = (
             Path(data_root)
             if data_root
-            else write_nyu_dataset(Path(tmp) / "val", n_train=1, n_val=n_val, seed=seed, progress=progress)
+            else write_nyu_dataset(
+                Path(tmp) / "val", n_train=1, n_val=n_val, seed=seed, progress=progress, realism=realism
+            )
         )
         files = list_nyu_h5(root, "val")[:n_val]
         acc, times = DepthMetrics(), []
@@ -60,6 +65,8 @@ def onnx_depth_metrics(
     out = acc.compute()
     out["ms"] = 1000.0 * float(np.median(times))
     out["frames"] = len(files)
+    if realism:
+        out["realism"] = True
     return out
 
 
@@ -69,9 +76,10 @@ def main() -> None:
     p.add_argument("--n-val", type=int, default=20)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--data", default=None, help="an NYU-layout root to use instead of regenerating frames")
+    p.add_argument("--realism", action="store_true", help="realistic rooms through the camera physics")
     p.add_argument("--out", default=None)
     a = p.parse_args()
-    m = onnx_depth_metrics(a.model, a.n_val, a.seed, a.data, progress=True)
+    m = onnx_depth_metrics(a.model, a.n_val, a.seed, a.data, progress=True, realism=a.realism)
     from train.metrics import format_table
 
     print(format_table({f"{a.model} (ONNX, c=0)": m}))

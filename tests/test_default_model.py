@@ -51,7 +51,9 @@ def _eval_script():
 def test_shipped_model_reproduces_recorded_validation_metrics():
     """Regenerate the validation frames (same generator, seed and count) and recompute the recorded metrics."""
     recorded = json.loads((MODEL / "val_metrics.json").read_text())
-    got = _eval_script().onnx_depth_metrics(MODEL, n_val=recorded["frames"], seed=0)
+    got = _eval_script().onnx_depth_metrics(
+        MODEL, n_val=recorded["frames"], seed=0, realism=bool(recorded.get("realism", False))
+    )
     assert got["frames"] == recorded["frames"]
     for k in ("rmse", "irmse", "abs_rel", "mae", "delta1", "delta2", "delta3"):
         assert got[k] == pytest.approx(recorded[k], rel=1e-3, abs=1e-4), k

@@ -106,9 +106,7 @@ class NyuH5Dataset(NyuFrames):
         limit: keep only the first ``limit`` frames (sorted order); None = all.
     """
 
-    def __init__(
-        self, root: str | Path, split: str, transform: Transform, seed: int = 0, limit: int | None = None
-    ):
+    def __init__(self, root: str | Path, split: str, transform: Transform, seed: int = 0, limit: int | None = None):
         files = list_nyu_h5(root, split)
         if limit is not None:
             files = files[: int(limit)]
@@ -160,9 +158,9 @@ def cache_dir() -> Path:
     return base / "dit-slam"
 
 
-def default_sim_root(n_train: int, n_val: int, seed: int) -> Path:
-    """Where the default synthetic NYU-layout set lives: ``<cache>/nyu-sim-<seed>-<n_train>-<n_val>``."""
-    return cache_dir() / f"nyu-sim-{int(seed)}-{int(n_train)}-{int(n_val)}"
+def default_sim_root(n_train: int, n_val: int, seed: int, realism: bool = False) -> Path:
+    """Where the default synthetic NYU-layout set lives: ``<cache>/nyu-sim-<seed>-<n_train>-<n_val>[-real]``."""
+    return cache_dir() / f"nyu-sim-{int(seed)}-{int(n_train)}-{int(n_val)}{'-real' if realism else ''}"
 
 
 def _complete(root: Path) -> bool:
@@ -173,7 +171,12 @@ def _complete(root: Path) -> bool:
 
 
 def ensure_synthetic_nyu(
-    root: str | Path | None, n_train: int, n_val: int, seed: int = 0, progress: bool = True
+    root: str | Path | None,
+    n_train: int,
+    n_val: int,
+    seed: int = 0,
+    progress: bool = True,
+    realism: bool = False,
 ) -> Path:
     """Return a synthetic NYU-layout root, rendering it first when it does not exist yet.
 
@@ -185,14 +188,13 @@ def ensure_synthetic_nyu(
         n_train, n_val: frames per split.
         seed: scene seed of the generator.
         progress: show a progress bar.
+        realism: realistic rooms (hand-held and tabletop) through the camera physics (``sim.nyu``).
     """
-    root = Path(root).expanduser() if root is not None else default_sim_root(n_train, n_val, seed)
+    root = Path(root).expanduser() if root is not None else default_sim_root(n_train, n_val, seed, realism)
     if _complete(root):
         return root
     if root.exists() and any(root.iterdir()):
-        raise FileExistsError(
-            f"{root} exists but holds no train/ and val/ h5 frames; remove it or pick another root"
-        )
+        raise FileExistsError(f"{root} exists but holds no train/ and val/ h5 frames; remove it or pick another root")
     try:
         from sim.nyu import write_nyu_dataset  # the one train -> sim import, see the module docstring
     except ImportError as e:  # pragma: no cover - depends on the installed tree
@@ -201,10 +203,11 @@ def ensure_synthetic_nyu(
     tmp = root.with_name(f"{root.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     log.info(
-        "rendering the synthetic NYU-layout set (%d train + %d val frames, seed %d) into %s",
+        "rendering the synthetic NYU-layout set (%d train + %d val frames, seed %d%s) into %s",
         n_train,
         n_val,
         seed,
+        ", realistic" if realism else "",
         root,
     )
     # Optional knobs of the sim writer: uncompressed h5 reads ~10x faster than gzip (3 vs 30 ms per frame, for
@@ -215,10 +218,10 @@ def ensure_synthetic_nyu(
         extra["compression"] = None
     if "workers" in params:
         extra["workers"] = max(1, min(4, os.cpu_count() or 1))
+    if realism:
+        extra["realism"] = True
     out = Path(
-        write_nyu_dataset(
-            tmp, n_train=int(n_train), n_val=int(n_val), seed=int(seed), progress=progress, **extra
-        )
+        write_nyu_dataset(tmp, n_train=int(n_train), n_val=int(n_val), seed=int(seed), progress=progress, **extra)
     )
     if not _complete(out):
         raise RuntimeError(f"sim.nyu.write_nyu_dataset wrote no train/ and val/ h5 frames under {out}")

@@ -77,11 +77,7 @@ class EpochSampler(Sampler):
 
     def order(self, epoch: int) -> np.ndarray:
         """This rank's frame indices of ``epoch``."""
-        perm = (
-            np.random.default_rng([self.seed, epoch]).permutation(self.n)
-            if self.shuffle
-            else np.arange(self.n)
-        )
+        perm = np.random.default_rng([self.seed, epoch]).permutation(self.n) if self.shuffle else np.arange(self.n)
         return perm[: len(self) * self.world_size][self.rank :: self.world_size]
 
     def __iter__(self):
@@ -185,21 +181,25 @@ class NyuDataModule(L.LightningDataModule):
         self.data_val: NyuFrames | None = None
         self.data_test: NyuFrames | None = None
         self._resume: tuple[int, int] | None = None  # (epoch, next pos) to start the train sampler from
-        self._pos: list[
-            tuple[int, int, int]
-        ] = []  # last consumed train batches: (global step, epoch, next pos)
+        self._pos: list[tuple[int, int, int]] = []  # last consumed train batches: (global step, epoch, next pos)
 
     # ------------------------------------------------------------------ data
     @property
+    def _realism(self) -> bool:
+        return bool(self.sim.get("realism", False))
+
+    @property
     def data_root(self) -> Path | None:
         if self.kind == "sim" and not self.root:
-            return default_sim_root(self.sim["n_train"], self.sim["n_val"], self.sim["seed"])
+            return default_sim_root(self.sim["n_train"], self.sim["n_val"], self.sim["seed"], self._realism)
         return Path(self.root).expanduser() if self.root else None
 
     def prepare_data(self) -> None:
         """Render the synthetic set when missing (once per node)."""
         if self.kind == "sim":
-            ensure_synthetic_nyu(self.data_root, self.sim["n_train"], self.sim["n_val"], self.sim["seed"])
+            ensure_synthetic_nyu(
+                self.data_root, self.sim["n_train"], self.sim["n_val"], self.sim["seed"], realism=self._realism
+            )
 
     def transform(self, train: bool) -> FrameTransform:
         return FrameTransform(self.height, self.width, self.modality, train, self.augment, self.sparse)
@@ -210,7 +210,9 @@ class NyuDataModule(L.LightningDataModule):
         if self.kind == "mat":
             return NyuMatDataset(self.mat_path, self.split_path, split, tf, self.seed, limit)
         if self.kind == "sim":
-            ensure_synthetic_nyu(self.data_root, self.sim["n_train"], self.sim["n_val"], self.sim["seed"])
+            ensure_synthetic_nyu(
+                self.data_root, self.sim["n_train"], self.sim["n_val"], self.sim["seed"], realism=self._realism
+            )
         return NyuH5Dataset(self.data_root, split, tf, self.seed, limit)
 
     def setup(self, stage: str | None = None) -> None:
@@ -252,9 +254,7 @@ class NyuDataModule(L.LightningDataModule):
         n = len(self.data_train)
         per_rank = n // world
         if per_rank < self.batch_size:
-            raise ValueError(
-                f"{n} training frames over {world} processes give fewer than batch_size={self.batch_size}"
-            )
+            raise ValueError(f"{n} training frames over {world} processes give fewer than batch_size={self.batch_size}")
         epoch, start = self._resume or (0, 0)
         if start + self.batch_size > per_rank:  # the saved epoch was finished
             epoch, start = epoch + 1, 0

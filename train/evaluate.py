@@ -85,9 +85,7 @@ def load_network(ckpt: str | Path, device: str = "cpu") -> tuple[torch.nn.Module
     return net.eval().to(device), net_cfg, dict(state.get("run_config") or {})
 
 
-def _data_config(
-    cfg: DictConfig, net_cfg: dict, run_cfg: dict, data_keys: list[str] | None = None
-) -> DictConfig:
+def _data_config(cfg: DictConfig, net_cfg: dict, run_cfg: dict, data_keys: list[str] | None = None) -> DictConfig:
     """The data config to evaluate on, at the network's modality and size.
 
     A data group chosen on the command line (``data=nyu_h5 data.root=...``) is used as composed; otherwise the
@@ -99,9 +97,7 @@ def _data_config(
         data = OmegaConf.create(OmegaConf.to_container(cfg.data, resolve=True))
     else:
         if not run_cfg.get("data"):
-            raise ValueError(
-                "the checkpoint has no run_config: pass a data group (data=nyu_sim|nyu_h5|nyu_mat)"
-            )
+            raise ValueError("the checkpoint has no run_config: pass a data group (data=nyu_sim|nyu_h5|nyu_mat)")
         data = OmegaConf.create(run_cfg["data"])
         if data_keys:
             data = OmegaConf.merge(data, OmegaConf.from_dotlist([k[len("data.") :] for k in data_keys]))
@@ -324,8 +320,10 @@ def _protocol_sets(cfg: DictConfig, modality: str, height: int, width: int) -> d
     sets = {}
     sim = cfg.get("sim") or {}
     if int(sim.get("n_val") or 0) > 0:
-        root = ensure_synthetic_nyu(sim.get("root"), 1, int(sim.n_val), int(sim.seed))
-        sets[f"synthetic val (dit-sim nyu seed {int(sim.seed)})"] = NyuH5Dataset(
+        realism = bool(sim.get("realism", False))
+        root = ensure_synthetic_nyu(sim.get("root"), 1, int(sim.n_val), int(sim.seed), realism=realism)
+        kind = "realistic " if realism else ""
+        sets[f"synthetic {kind}val (dit-sim nyu seed {int(sim.seed)})"] = NyuH5Dataset(
             root, "val", tf, seed, cfg.get("limit")
         )
     if cfg.get("real"):

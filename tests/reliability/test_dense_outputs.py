@@ -101,3 +101,15 @@ def test_a_dense_run_whose_keyframe_maps_fail_leaves_no_dense_output(tiny_seq, t
     names = _listing(out)
     assert "keyframe_depth" not in names and "dense_map.ply" not in names
     assert not [n for n in names if ".partial-" in n]  # no temporary file or folder left either
+
+
+def test_a_new_run_clears_the_temporary_dense_outputs_of_a_killed_run(tmp_path):
+    from runtime.outputs import prepare_run_dir
+
+    out = tmp_path / "o"
+    (out / ".keyframe_depth.partial-123-abcdef").mkdir(parents=True)  # what SIGKILL while writing leaves
+    (out / ".keyframe_depth.partial-123-abcdef" / "kf00000.npz").write_bytes(b"half")
+    (out / ".dense_map.partial-123-abcdef.ply").write_bytes(b"ply\n")
+    (out / "notes.txt").write_text("mine")
+    prepare_run_dir(out)
+    assert _listing(out) == ["metrics.json", "notes.txt"]

@@ -393,7 +393,8 @@ def standin_model(
     manifest_path = out / "manifest.json"
     if manifest_path.is_file():
         try:
-            reused = json.loads(manifest_path.read_text()).get("standin") == spec
+            cached = json.loads(manifest_path.read_text())
+            reused = cached.get("standin") == spec and bool(cached.get("files"))  # no hashes: an older export
             reused = reused and decoder_parity(net, out) <= 1e-4
         except Exception:  # a broken or stale export is simply redone
             reused = False

@@ -2,7 +2,7 @@
 
 A model directory holds ``prior.onnx``, ``decoder.onnx`` and ``manifest.json`` (written by ``dit-export``).
 The manifest records each ONNX file's SHA-256 and the export's run id; a folder whose files do not match their
-manifest (e.g. one graph of another export) is refused at load.
+manifest (e.g. one graph of another export), or whose manifest records no hashes, is refused at load.
 
 >>> net = DepthNetwork("models/default")                          # doctest: +SKIP
 >>> kf = net.prior(grey_224, sparse_224)                          # doctest: +SKIP
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,8 +23,6 @@ from runtime.densify import network_fill
 
 MODALITY_CHANNELS = {"rgb": 3, "rgbs": 4, "gray": 1, "grays": 2}
 RUNTIME_MODALITIES = ("gray", "grays")  # the SLAM runtime feeds grey cam0 images (runtime.dense.DenseMapper)
-
-log = logging.getLogger(__name__)
 
 
 def file_sha256(path: str | Path) -> str:
@@ -41,13 +38,16 @@ def verify_files(model_dir: Path, manifest: dict) -> None:
     """Check every file of the manifest's ``files`` (``{name: {"sha256": ...}}``) against its SHA-256.
 
     Raises:
-        ModelError: a file is missing or its bytes differ from the export that wrote the manifest.
+        ModelError: the manifest records no file hashes (an export older than them: its files cannot be
+            verified), a file is missing, or its bytes differ from the export that wrote the manifest.
     """
     files = manifest.get("files")
     run = manifest.get("run_id", "?")
-    if not files:
-        log.warning("%s: manifest.json has no file hashes (written before they were added): not verified", model_dir)
-        return
+    if not files or not isinstance(files, dict):
+        raise ModelError(
+            f"{model_dir}: manifest.json records no file hashes (written by an older dit-export), so its files "
+            "cannot be verified; re-export the model with dit-export"
+        )
     for name, rec in files.items():
         p = model_dir / name
         if not p.is_file():

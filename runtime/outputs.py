@@ -3,7 +3,8 @@
 A run writes ``metrics.json`` first as a stub ``{"run_id": ..., "complete": false}`` and last in full, so a
 folder always says which run wrote it and whether that run finished. Files are written to a hidden temporary
 name beside their final one and renamed into place (``os.replace`` is atomic within a folder): a reader sees the
-old file, the new one, or none, never a truncated one.
+old file, the new one, or none, never a truncated one. Folders (``keyframe_depth/``) are filled under a hidden
+temporary name and renamed into place the same way (:func:`atomic_folder`).
 
 >>> import tempfile
 >>> d = Path(tempfile.mkdtemp())
@@ -25,7 +26,15 @@ from pathlib import Path
 
 from runtime.errors import UsageError
 
-__all__ = ["SLAM_OUTPUTS", "atomic_text", "atomic_write", "check_writable", "new_run_id", "prepare_run_dir"]
+__all__ = [
+    "SLAM_OUTPUTS",
+    "atomic_folder",
+    "atomic_text",
+    "atomic_write",
+    "check_writable",
+    "new_run_id",
+    "prepare_run_dir",
+]
 
 #: Everything ``dit-slam`` writes into its output folder (cleared before a new run writes there).
 SLAM_OUTPUTS = (
@@ -60,6 +69,37 @@ def atomic_write(path: str | Path, writer: Callable[[Path], object]) -> Path:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return path
+
+
+def atomic_folder(path: str | Path, writer: Callable[[Path], object]) -> Path:
+    """Call ``writer(tmp)`` to fill a temporary folder beside ``path``, then rename it to ``path``.
+
+    An earlier folder at ``path`` is kept until the new one is whole: it is renamed aside (a hidden temporary
+    name) just before the new one is renamed into place, and removed after. If ``writer`` fails or is
+    interrupted, the temporary folder is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    tmp = _tmp_name(path)
+    old = None
+    try:
+        tmp.mkdir()
+        writer(tmp)
+        if path.is_dir() and not path.is_symlink():
+            old = _tmp_name(path)
+            os.replace(path, old)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+        os.replace(tmp, path)
+    except BaseException:
+        if old is not None and not path.exists():  # interrupted between the two renames: put the old one back
+            os.replace(old, path)
+            old = None
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
     return path
 
 
@@ -119,8 +159,11 @@ def prepare_run_dir(
         else:
             continue
         removed.append(name)
-    for stale in out.glob(".*.partial-*"):  # temporary files of a killed run
-        stale.unlink(missing_ok=True)
+    for stale in out.glob(".*.partial-*"):  # temporary files and folders of a killed run
+        if stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            stale.unlink(missing_ok=True)
     run_id = new_run_id()
     stub = {"run_id": run_id, "complete": False, "status": "running", "started_utc": run_id.split("-")[0]}
     atomic_text(out / "metrics.json", json.dumps(stub, indent=2))

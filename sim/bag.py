@@ -146,24 +146,26 @@ def write_bag(asl_root: str | Path, out: str | Path, fmt: str = "bag", calib_dir
 def write_bag_sequence(out: str | Path, fmt: str, **kw) -> Path:
     """``dit-sim euroc format=bag|ros2|mcap``: render the sequence (keywords of
     :func:`sim.euroc.write_euroc_sequence`) and write it into ``out`` as the bag :func:`bag_name` names, with
-    ``calib/`` (its sensor.yaml files) and ``sim_info.json``; the ASL folder rendered on the way is removed.
+    ``calib/`` (its sensor.yaml files) and ``sim_info.json``; the ASL folder rendered on the way is removed, and so
+    is the partial output of an interrupted or failed run (:func:`sim.output.sim_output`).
 
     Returns:
         The bag (``out/sequence.bag`` or the ROS2 folder ``out/sequence``).
     """
     import json
 
-    from sim.euroc import prepare_output, write_euroc_sequence
+    from sim.euroc import write_euroc_sequence
+    from sim.output import sim_output, write_info
 
     out = Path(out)
     name = bag_name(fmt)
-    prepare_output(out, (name, "calib", "_asl"))
-    asl = write_euroc_sequence(out / "_asl", **kw)
-    try:
-        bag = write_bag(asl, out / name, fmt, calib_dir=out / "calib")
-        info = json.loads((asl / "sim_info.json").read_text())
-        info.update(format=fmt, bag=name, calib="calib", gt_topic=GT_TOPIC)
-        (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
-    finally:
-        shutil.rmtree(asl)
+    with sim_output(out, (name, "calib", "_asl"), "euroc", format=fmt):
+        asl = write_euroc_sequence(out / "_asl", **kw)
+        try:
+            bag = write_bag(asl, out / name, fmt, calib_dir=out / "calib")
+            info = json.loads((asl / "sim_info.json").read_text())
+            info.update(format=fmt, bag=name, calib="calib", gt_topic=GT_TOPIC)
+        finally:
+            shutil.rmtree(asl)
+        write_info(out, info)
     return bag

@@ -7,8 +7,9 @@
 
 The first bare word selects the job (it is turned into the override ``job=...``); everything else is a Hydra
 override of ``conf/sim.yaml`` (``--cfg job`` prints the composed config). Expected failures print one line and
-exit with status 2 (``--debug`` or ``HYDRA_FULL_ERROR=1`` adds the traceback); Ctrl-C or SIGTERM removes the
-partial output of ``euroc`` and exits with status 130.
+exit with status 2 (``--debug`` or ``HYDRA_FULL_ERROR=1`` adds the traceback). Every job owns its output folder
+the same way (:mod:`sim.output`): Ctrl-C or SIGTERM removes the partial output and exits with status 130, and a
+rerun into a folder that an earlier run left (complete, or partial after a kill) replaces it and says which.
 """
 
 from __future__ import annotations
@@ -44,10 +45,23 @@ def _sequence_kwargs(cfg: DictConfig) -> dict:
     )
 
 
+def _out(cfg: DictConfig) -> str:
+    """The output folder of the job: ``out=`` or the job's default."""
+    if cfg.out is not None:
+        return str(cfg.out)
+    if cfg.job == "euroc":
+        return f"data/sim/euroc_{cfg.preset}_s{cfg.seed}"
+    if cfg.job == "nyu":
+        return f"data/sim/nyu_s{cfg.seed}"
+    if cfg.source is None:
+        raise ValueError("dit-sim imu needs source=DIR (an EuRoC-layout sequence with images and ground truth)")
+    return f"data/sim/imu_{Path(str(cfg.source)).resolve().name}"
+
+
 def _euroc(cfg: DictConfig) -> str:
     from sim.euroc import write_euroc_sequence
 
-    out = cfg.out if cfg.out is not None else f"data/sim/euroc_{cfg.preset}_s{cfg.seed}"
+    out = _out(cfg)
     fmt = str(cfg.get("format", "asl"))
     if fmt != "asl":
         return _euroc_bag(cfg, out, fmt)
@@ -89,7 +103,7 @@ def _euroc_bag(cfg: DictConfig, out: str, fmt: str) -> str:
 def _nyu(cfg: DictConfig) -> str:
     from sim.nyu import write_nyu_dataset
 
-    out = cfg.out if cfg.out is not None else f"data/sim/nyu_s{cfg.seed}"
+    out = _out(cfg)
     root = write_nyu_dataset(
         out,
         n_train=int(cfg.n_train),
@@ -113,9 +127,7 @@ def _imu(cfg: DictConfig) -> str:
     from sim.complete import complete_imu
     from sim.imu import FLIGHT_IMU, ImuNoise
 
-    if cfg.source is None:
-        raise ValueError("dit-sim imu needs source=DIR (an EuRoC-layout sequence with images and ground truth)")
-    out = cfg.out if cfg.out is not None else f"data/sim/imu_{Path(str(cfg.source)).resolve().name}"
+    out = _out(cfg)
     noise = None
     if cfg.imu_sensor is not None:
         from runtime.io.euroc import read_imu_yaml
@@ -151,16 +163,21 @@ def _run(cfg: DictConfig) -> None:
     if cfg.job not in JOBS:
         sys.exit(f"dit-sim: unknown job {cfg.job!r}; expected one of {', '.join(JOBS)} (e.g. `dit-sim euroc`)")
     from runtime.errors import EXPECTED, report
+    from sim.output import earlier
 
     t0 = time.perf_counter()
     try:
+        before = earlier(_out(cfg))
         summary = {"euroc": _euroc, "nyu": _nyu, "imu": _imu}[cfg.job](cfg)
     except EXPECTED as e:  # bad settings, a foreign or unwritable output folder: say so, no traceback
         sys.exit(report(f"dit-sim {cfg.job}", e, _DEBUG["on"]))
     except KeyboardInterrupt:
-        done = "; the partial output was removed" if cfg.job == "euroc" else ""
-        print(f"dit-sim {cfg.job}: interrupted{done}", file=sys.stderr)
+        print(f"dit-sim {cfg.job}: interrupted; the partial output was removed (rerun to write it)", file=sys.stderr)
         sys.exit(130)
+    if before == "partial":
+        summary += "\n  replaced the partial output of an unfinished earlier run (its sim_info.json: complete=false)"
+    elif before == "complete":
+        summary += "\n  replaced the earlier dit-sim output in this folder"
     print(summary)
     print(f"  took {time.perf_counter() - t0:.1f} s")
 

@@ -20,7 +20,6 @@ warped timestamps).
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,8 +29,9 @@ from scipy.interpolate import UnivariateSpline
 
 from runtime.geometry import GRAVITY_W, R_to_quat_wxyz, quat_wxyz_to_R
 from runtime.io.euroc import GT_HEADER, IMU_HEADER, read_groundtruth, read_imu_yaml
-from sim.euroc import GENERATOR, _imu_yaml, _write_csv
+from sim.euroc import _imu_yaml, _write_csv
 from sim.imu import EUROC_ADIS16448, FLIGHT_IMU, ImuErrors, ImuNoise, add_imu_errors
+from sim.output import GENERATOR, sim_output, write_info
 from sim.trajectory import smooth_step
 
 __all__ = ["SplineFit", "fit_ground_truth", "complete_imu"]
@@ -172,7 +172,9 @@ def complete_imu(
 
     Args:
         source: EuRoC-layout root (``mav0/cam0`` with images, ``mav0/state_groundtruth_estimate0``).
-        out: output root (created; an earlier ``dit-sim imu`` output there is replaced, anything else refused).
+        out: output root (created; an earlier ``dit-sim imu`` output there is replaced, a partial one too,
+            anything else refused). An interrupted or failed run removes its partial output
+            (:func:`sim.output.sim_output`).
         seed: noise seed.
         noise: white noise and random-walk densities (default: the source's ``imu0/sensor.yaml`` if it has one,
             else EuRoC's ADIS16448).
@@ -187,8 +189,6 @@ def complete_imu(
     Returns:
         A summary (also written to ``out/imu_info.json``): fit errors, counts, the options.
     """
-    from sim.euroc import prepare_output
-
     source, out = Path(source).resolve(), Path(out)
     mav_src = source / "mav0" if (source / "mav0").is_dir() else source
     cam_src = mav_src / "cam0"
@@ -274,23 +274,6 @@ def complete_imu(
         g_meas, a_meas = g_meas + bg0, a_meas + ba0
         bg, ba = bg + bg0, ba + ba0
 
-    prepare_output(out, ("mav0",))
-    mav0 = out / "mav0"
-    (mav0 / "cam0" / "data").mkdir(parents=True)
-    lines = ["#timestamp [ns],filename"]
-    for t, name in zip(out_frame_ts, out_names, strict=True):
-        link = mav0 / "cam0" / "data" / f"{int(t)}.png"
-        os.symlink(cam_src / "data" / name, link)
-        lines.append(f"{int(t)},{int(t)}.png")
-    (mav0 / "cam0" / "data.csv").write_text("\n".join(lines) + "\n")
-    (mav0 / "cam0" / "sensor.yaml").write_text((cam_src / "sensor.yaml").read_text())
-    (mav0 / "imu0").mkdir(parents=True)
-    (mav0 / "imu0" / "sensor.yaml").write_text(
-        _imu_yaml(noise).replace("simulated by dit-sim", "synthesised by dit-sim imu")
-    )
-    _write_csv(mav0 / "imu0" / "data.csv", IMU_HEADER, imu_ts, np.concatenate([g_meas, a_meas], 1))
-    gt_rows = np.concatenate([p, R_to_quat_wxyz(R), v, bg, ba], 1)
-    _write_csv(mav0 / "state_groundtruth_estimate0" / "data.csv", GT_HEADER, imu_ts, gt_rows)
     info = {
         "generator": GENERATOR,
         "job": "imu",
@@ -320,5 +303,27 @@ def complete_imu(
             "vel_err_median_mm_s": float(np.median(e_v) * 1e3),
         },
     }
-    (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
+    with sim_output(out, ("mav0",), "imu", source=str(source), seed=int(seed)):
+        _write_completed(out, cam_src, out_frame_ts, out_names, noise, imu_ts, g_meas, a_meas, p, R, v, bg, ba)
+        write_info(out, info)
     return info
+
+
+def _write_completed(out, cam_src, out_frame_ts, out_names, noise, imu_ts, g_meas, a_meas, p, R, v, bg, ba) -> None:
+    """The files of :func:`complete_imu` below ``out/mav0``: image links, IMU, ground truth, sensor files."""
+    mav0 = out / "mav0"
+    (mav0 / "cam0" / "data").mkdir(parents=True)
+    lines = ["#timestamp [ns],filename"]
+    for t, name in zip(out_frame_ts, out_names, strict=True):
+        link = mav0 / "cam0" / "data" / f"{int(t)}.png"
+        os.symlink(cam_src / "data" / name, link)
+        lines.append(f"{int(t)},{int(t)}.png")
+    (mav0 / "cam0" / "data.csv").write_text("\n".join(lines) + "\n")
+    (mav0 / "cam0" / "sensor.yaml").write_text((cam_src / "sensor.yaml").read_text())
+    (mav0 / "imu0").mkdir(parents=True)
+    (mav0 / "imu0" / "sensor.yaml").write_text(
+        _imu_yaml(noise).replace("simulated by dit-sim", "synthesised by dit-sim imu")
+    )
+    _write_csv(mav0 / "imu0" / "data.csv", IMU_HEADER, imu_ts, np.concatenate([g_meas, a_meas], 1))
+    gt_rows = np.concatenate([p, R_to_quat_wxyz(R), v, bg, ba], 1)
+    _write_csv(mav0 / "state_groundtruth_estimate0" / "data.csv", GT_HEADER, imu_ts, gt_rows)

@@ -16,10 +16,8 @@ ground-truth body poses through cam0's ``T_BS``: ``T_w_c = T_w_b @ T_b_c``.
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import os
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -29,6 +27,7 @@ from tqdm import tqdm
 
 from runtime.geometry import Camera, R_to_quat_wxyz
 from runtime.io.euroc import EUROC_CAM0, EUROC_T_B_C0, GT_HEADER, IMU_HEADER
+from runtime.outputs import atomic_write
 from sim.camera import (
     CameraPhysics,
     auto_exposure,
@@ -49,6 +48,7 @@ from sim.imu import (
     instantaneous_imu,
     synthesize_imu,
 )
+from sim.output import GENERATOR, sim_output, write_info
 from sim.render import Renderer
 from sim.scenes import PRESETS, ROOM_PRESETS, Scene, make_scene
 from sim.trajectory import Trajectory, make_trajectory
@@ -75,7 +75,6 @@ DEPTH_SCALE = 5000.0  # depth0 PNG value per metre
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 MAX_SCALE = 4.0  # image resolution factor: 3008x1920 at most
 RENDER_BYTES_PER_PIXEL = 100  # peak memory of one frame's rendering (measured 84 B/px at scales 0.5-2)
-GENERATOR = "dit-sim"
 PHYSICS_DT = 1e-3  # [s] step of the camera motion that gives the pixel velocities (motion blur, rolling shutter)
 
 
@@ -232,13 +231,7 @@ def write_png(path: Path, img: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", img, PNG_PARAMS)
     if not ok:
         raise OSError(f"could not encode {path}")
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
-        tmp.write_bytes(buf.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda tmp: tmp.write_bytes(buf.tobytes()))
 
 
 def _check_args(preset: str, duration: float, seed: int) -> None:
@@ -367,32 +360,6 @@ def _write_file_list(path: Path, ts: np.ndarray) -> None:
     path.write_text("#timestamp [ns],filename\n" + "".join(f"{int(t)},{int(t)}.png\n" for t in ts))
 
 
-def prepare_output(out: Path, parts: tuple[str, ...]) -> None:
-    """Create ``out``; remove earlier dit-sim output (``parts`` below ``out``) but never anything else.
-
-    Raises:
-        FileExistsError: ``out`` holds one of ``parts`` that dit-sim did not write (no ``sim_info.json``).
-    """
-    out.mkdir(parents=True, exist_ok=True)
-    existing = [out / p for p in parts if (out / p).exists()]
-    if not existing:
-        return
-    info = out / "sim_info.json"
-    ours = False
-    if info.is_file():
-        try:
-            ours = json.loads(info.read_text()).get("generator") == GENERATOR
-        except (OSError, ValueError):
-            ours = False
-    if not ours:
-        raise FileExistsError(
-            f"{existing[0]} exists and was not written by {GENERATOR} (no {info}); choose another output folder"
-        )
-    for p in existing:
-        shutil.rmtree(p) if p.is_dir() else p.unlink()
-    info.unlink()
-
-
 # --------------------------------------------------------------------------- rendering (maybe in workers)
 _WORKER: dict = {}
 
@@ -516,18 +483,11 @@ def write_euroc_sequence(
         raise ValueError(f"camera={camera!r} is not one of {', '.join(CAMERAS)}")
     cam = scaled_camera(scale, CAMERAS[camera])
     data = simulate_sequence(preset, duration, int(seed), imu_noise, realism=bool(realism))
-    prepare_output(out, ("mav0", "sim_frames.csv"))
-    partial = {"generator": GENERATOR, "job": "euroc", "complete": False, "preset": preset, "seed": int(seed)}
-    (out / "sim_info.json").write_text(json.dumps(partial, indent=2) + "\n")
-    try:
+    with sim_output(out, ("mav0", "sim_frames.csv"), "euroc", preset=preset, seed=int(seed)):
         _write_euroc(
             out, data, cam, camera, preset, duration, seed, imu_noise, scale, workers, noise_sigma, realism, ideal,
             progress,
         )  # fmt: skip
-    except BaseException:  # interrupted or failed: remove this run's partial output
-        for p in (out / "mav0", out / "sim_frames.csv", out / "sim_info.json"):
-            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
-        raise
     return out
 
 
@@ -619,6 +579,4 @@ def _write_euroc(
         info["written_camera"] = [written_cam.fx, written_cam.fy, written_cam.cx, written_cam.cy, *written_cam.dist]
         info["imu_errors"] = asdict(imu_errors_for(preset)) if imu_noise else None
         info["frame_settings"] = "sim_frames.csv (exposure, gain, illumination per frame)"
-    tmp = out / ".sim_info.json.partial"  # the final sim_info.json has no "complete" key: bytes as before
-    tmp.write_text(json.dumps(info, indent=2) + "\n")
-    os.replace(tmp, out / "sim_info.json")
+    write_info(out, info)  # the final sim_info.json has no "complete" key: bytes as before

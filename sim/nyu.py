@@ -14,7 +14,6 @@ seed-sequence branches and their names differ (``sim_train_0000`` ... vs ``sim_v
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -22,7 +21,9 @@ import h5py
 import numpy as np
 
 from runtime.geometry import Camera, make_T
-from sim.euroc import GENERATOR, prepare_output, run_jobs
+from runtime.outputs import atomic_write
+from sim.euroc import run_jobs
+from sim.output import GENERATOR, sim_output, write_info
 from sim.render import Renderer
 from sim.scenes import make_scene
 from sim.trajectory import euler_to_R_w_c
@@ -52,6 +53,17 @@ def random_viewpoints(scene, n: int, rng: np.random.Generator) -> np.ndarray:
     return np.stack([make_T(R[i], p[i]) for i in range(n)])
 
 
+def write_frame(path: Path, img: np.ndarray, depth: np.ndarray, compression: str | None) -> Path:
+    """One frame as h5 (``rgb`` channels-first uint8, ``depth`` float32 [m]), written atomically: never half a file."""
+
+    def write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression)
+            f.create_dataset("depth", data=depth.astype(np.float32), compression=compression)
+
+    return atomic_write(path, write)
+
+
 def _render_scene(job: tuple) -> int:
     """Build one scene, render its frames and write them as h5 files; returns the number of frames."""
     import cv2
@@ -68,9 +80,7 @@ def _render_scene(job: tuple) -> int:
         rng = np.random.default_rng(np.random.SeedSequence([scene_seed, 0x5EE, j]))
         T_w_c = random_viewpoints(scene, 1, rng)[0]
         img, depth = renderer.render(T_w_c, rng, noise_sigma, exposure=float(rng.uniform(0.85, 1.15)))
-        with h5py.File(out_dir / f"{j:05d}.h5", "w") as f:
-            f.create_dataset("rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression)
-            f.create_dataset("depth", data=depth.astype(np.float32), compression=compression)
+        write_frame(out_dir / f"{j:05d}.h5", img, depth, compression)
     return n_frames
 
 
@@ -120,9 +130,7 @@ def _render_scene_realistic(job: tuple) -> int:
             rng,
             physics.readout_s / KINECT_RGB.height,
         )
-        with h5py.File(out_dir / f"{j:05d}.h5", "w") as f:
-            f.create_dataset("rgb", data=np.ascontiguousarray(img.transpose(2, 0, 1)), compression=compression)
-            f.create_dataset("depth", data=depth.astype(np.float32), compression=compression)
+        write_frame(out_dir / f"{j:05d}.h5", img, depth, compression)
     return n_frames
 
 
@@ -147,7 +155,8 @@ def write_nyu_dataset(
 
     Args:
         out: output folder (gets ``train/``, ``val/`` and ``sim_info.json``); earlier dit-sim output there is
-            replaced, anything else raises ``FileExistsError``.
+            replaced (a partial one too), anything else raises ``FileExistsError``. Each h5 file is written
+            atomically; an interrupted or failed run removes its partial output (:func:`sim.output.sim_output`).
         n_train, n_val: number of frames per split (>= 0); ``ceil(n / frames_per_scene)`` scenes each.
         seed: same seed, same data.
         progress: show a tqdm bar.
@@ -171,7 +180,6 @@ def write_nyu_dataset(
     if n_train + n_val == 0:
         raise ValueError("n_train + n_val must be positive")
     out = Path(out)
-    prepare_output(out, SPLITS)
     jobs, scenes = [], {}
     for split, n in (("train", int(n_train)), ("val", int(n_val))):
         n_scenes = math.ceil(n / frames_per_scene)
@@ -183,8 +191,6 @@ def write_nyu_dataset(
             jobs.append(job + (True,) if realism else job)
             names.append(name)
         scenes[split] = names
-        (out / split).mkdir(parents=True, exist_ok=True)
-    run_jobs(jobs, _noop, (), _render_scene, workers, progress, "nyu", int(n_train) + int(n_val))  # a job per scene
     info = {
         "generator": GENERATOR,
         "job": "nyu",
@@ -203,5 +209,9 @@ def write_nyu_dataset(
         },
         "scenes": scenes,
     }
-    (out / "sim_info.json").write_text(json.dumps(info, indent=2) + "\n")
+    with sim_output(out, SPLITS, "nyu", seed=int(seed), n_train=int(n_train), n_val=int(n_val)):
+        for split in SPLITS:
+            (out / split).mkdir(parents=True, exist_ok=True)
+        run_jobs(jobs, _noop, (), _render_scene, workers, progress, "nyu", int(n_train) + int(n_val))  # job per scene
+        write_info(out, info)
     return out

@@ -16,6 +16,10 @@ Outputs in the run directory: ``checkpoints/last.ckpt`` (always), ``checkpoints/
 ``val/rmse``), ``csv/`` logs (and ``tensorboard/`` when installed), ``images/`` validation panels,
 ``metrics.json`` and ``.hydra/`` (the composed config).
 
+An expected failure (a missing checkpoint, bad settings) prints one line ``fit: <problem>`` and exits with
+status 2, before any data or model is built where it can; ``--debug`` or ``HYDRA_FULL_ERROR=1`` adds the
+traceback (:mod:`runtime.errors`).
+
 ``ckpt_path=last`` resumes from ``<run dir>/checkpoints/last.ckpt``; when the run directory is new (no
 ``hydra.run.dir`` given), the newest ``last.ckpt`` under ``paths.log_dir/<task_name>/`` is used instead. A
 checkpoint to resume from must hold the same network (``model.net``) as this run, else the run stops with a
@@ -164,17 +168,23 @@ def train(cfg: DictConfig) -> dict:
     Returns:
         ``{"val/rmse": ..., ..., "val_median/rmse": ..., "best_model_path": ..., "last_model_path": ...}``.
     """
+    out_dir = _output_dir(cfg)
+    net_cfg = OmegaConf.to_container(cfg.model.net, resolve=True)
+    net_cfg.pop("_target_", None)
+    ckpt = None
+    if cfg.get("train", True):  # a missing or foreign checkpoint fails here, before any data or model is built
+        runs_root = Path(cfg.paths.log_dir) / str(cfg.task_name) if cfg.get("paths") else None
+        ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), out_dir, runs_root)
+        if ckpt is not None:
+            check_resume_compatible(ckpt, net_cfg)
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
     if cfg.get("seed") is not None:
         L.seed_everything(int(cfg.seed), workers=True)
-    out_dir = _output_dir(cfg)
 
     log.info("data <%s>, model <%s>", cfg.data._target_, cfg.model._target_)
     datamodule: L.LightningDataModule = hydra.utils.instantiate(cfg.data)
     model: L.LightningModule = hydra.utils.instantiate(cfg.model)
-    net_cfg = OmegaConf.to_container(cfg.model.net, resolve=True)
-    net_cfg.pop("_target_", None)
     model.net_config = net_cfg
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
 
@@ -183,11 +193,7 @@ def train(cfg: DictConfig) -> dict:
     trainer: L.Trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
 
     if cfg.get("train", True):
-        runs_root = Path(cfg.paths.log_dir) / str(cfg.task_name) if cfg.get("paths") else None
-        ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), out_dir, runs_root)
-        if ckpt is not None:
-            check_resume_compatible(ckpt, net_cfg)
-        elif trainer.is_global_zero:
+        if ckpt is None and trainer.is_global_zero:
             set_aside_earlier_run(out_dir)
         trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt)
 
@@ -221,16 +227,33 @@ def train(cfg: DictConfig) -> dict:
     return metrics
 
 
+_DEBUG = {"on": False}
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="fit")
-def main(cfg: DictConfig) -> float | None:
+def _run(cfg: DictConfig) -> float | None:
     """Hydra entry; returns ``val/rmse`` (for sweepers)."""
     from runtime.errors import EXPECTED, report
 
     try:
         metrics = train(cfg)
-    except EXPECTED as e:
-        sys.exit(report("fit", e, os.environ.get("HYDRA_FULL_ERROR") == "1"))
+    except EXPECTED as e:  # bad settings, a missing or foreign checkpoint: one line, exit 2 (runtime.errors)
+        sys.exit(report("fit", e, _DEBUG["on"]))
     return metrics.get("val/rmse")
+
+
+def main(argv: list[str] | None = None) -> float | None:
+    """Command line entry: Hydra overrides; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) also prints the traceback of
+    an expected failure, which is otherwise one line ``fit: <problem>`` and exit status 2."""
+    from runtime.errors import split_debug
+
+    saved = sys.argv
+    args, _DEBUG["on"] = split_debug(list(saved[1:] if argv is None else argv))
+    sys.argv = [saved[0] if saved else "fit.py", *args]
+    try:
+        return _run()
+    finally:
+        sys.argv = saved
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@
   moved to the world with ``T_w_b T_b_c`` and voxel-downsampled; :func:`write_dense_map` writes
   ``dense_map.ply``.
 * :func:`save_keyframe_maps`: per-keyframe depth and uncertainty maps (``.npz`` float32 and 16-bit PNGs in
-  the depth0 convention, value = metres * 5000).
+  the depth0 convention, value = metres * 5000); :func:`write_keyframe_maps` writes the ``keyframe_depth/``
+  folder of them. Both outputs are written atomically (temporary name, then rename).
 * :func:`depth_metrics`: RMSE, iRMSE, AbsRel, MAE, delta_k of a prediction against ground truth at network
   resolution (:func:`gt_depth_to_network` maps ``mav0/depth0`` there), numpy only (``train.metrics`` is the
   torch version used in training; the formulas are the same).
@@ -23,6 +24,7 @@ import numpy as np
 from runtime.dense.config import DenseMapConfig
 from runtime.geometry import Camera, NetworkMapping
 from runtime.io.ply import write_ply
+from runtime.outputs import atomic_folder, atomic_write
 
 __all__ = [
     "uncertainty_mask",
@@ -30,6 +32,7 @@ __all__ = [
     "voxel_downsample",
     "fuse_depth_maps",
     "write_dense_map",
+    "write_keyframe_maps",
     "save_keyframe_maps",
     "gt_depth_to_network",
     "sparse_depth_image",
@@ -175,11 +178,41 @@ def fuse_depth_maps(
 
 
 def write_dense_map(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
-    """Write the fused cloud as PLY (``dense_map.ply`` by convention); ``path`` may be a folder."""
+    """Write the fused cloud as PLY (``dense_map.ply`` by convention); ``path`` may be a folder.
+
+    Written atomically (:func:`runtime.outputs.atomic_write`): an earlier file at ``path`` stays whole until the
+    new one is complete, and a failed or interrupted write leaves nothing under the final name.
+    """
     path = Path(path)
     if path.suffix.lower() != ".ply":
         path = path / "dense_map.ply"
-    return write_ply(path, np.asarray(xyz, dtype=np.float64).reshape(-1, 3), rgb)
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    return atomic_write(path, lambda tmp: write_ply(tmp, xyz, rgb))
+
+
+def write_keyframe_maps(
+    out_dir: str | Path, maps: Sequence[tuple[str, np.ndarray, np.ndarray | None]], png: bool = True
+) -> Path:
+    """Write the folder ``out_dir`` (``keyframe_depth/`` by convention) with each keyframe's maps.
+
+    Args:
+        out_dir: the folder (replaced as a whole).
+        maps: ``(name, depth, uncertainty or None)`` per keyframe, as :func:`save_keyframe_maps` takes them.
+        png: also the 16-bit PNGs.
+
+    The folder is filled under a temporary name and renamed into place (:func:`runtime.outputs.atomic_folder`):
+    an earlier folder stays whole until the new one is complete, and a failed or interrupted write leaves no
+    folder under the final name.
+
+    Returns:
+        ``out_dir`` as a Path.
+    """
+
+    def fill(tmp: Path) -> None:
+        for name, depth, uncertainty in maps:
+            save_keyframe_maps(tmp, name, depth, uncertainty, png)
+
+    return atomic_folder(out_dir, fill)
 
 
 def save_keyframe_maps(

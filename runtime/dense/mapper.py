@@ -46,9 +46,9 @@ from runtime.dense.map import (
     fuse_depth_maps,
     gt_depth_to_network,
     mean_metrics,
-    save_keyframe_maps,
     sparse_depth_image,
     write_dense_map,
+    write_keyframe_maps,
 )
 from runtime.dense.sampling import sample_consistency_pixels
 from runtime.geometry import Camera, NetworkMapping, inv_T, project_pinhole
@@ -310,7 +310,8 @@ class DenseMapper:
         }
 
     def finish(self, backend, out_dir: str | Path) -> dict:
-        """Write ``dense_map.ply`` and per-keyframe maps; return the dense metrics for ``metrics.json``."""
+        """Write ``dense_map.ply`` and the per-keyframe maps (``keyframe_depth/``), each atomically; return the
+        dense metrics for ``metrics.json``."""
         out = Path(out_dir)
         active = [k for k in backend.window_ids() if k in self.kfs]
         for k in active:
@@ -318,13 +319,13 @@ class DenseMapper:
         depths, poses, uncs, imgs = [], [], [], []
         for k in active:
             d = self.kfs[k]
-            depth = self.final_depth(d)
-            depths.append(depth)
+            depths.append(self.final_depth(d))
             poses.append(backend.keyframe(k).T_w_b)
             uncs.append(d.provider.uncertainty)
             imgs.append(d.image)
-            if self.cfg.save_maps:
-                save_keyframe_maps(out / "keyframe_depth", f"kf{k:05d}", depth, d.provider.uncertainty)
+        if self.cfg.save_maps and active:
+            maps = [(f"kf{k:05d}", depth, unc) for k, depth, unc in zip(active, depths, uncs, strict=True)]
+            write_keyframe_maps(out / "keyframe_depth", maps)
         xyz, rgb = fuse_depth_maps(depths, poses, self.net_cam, self.T_b_c, uncs, imgs, self.cfg.map)
         write_dense_map(out / "dense_map.ply", xyz, rgb)
         self.dense_map = (xyz, rgb)  # for the Rerun recording

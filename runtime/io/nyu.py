@@ -14,6 +14,7 @@ All readers return RGB as HWC uint8 and depth as float32 metres with 0 = invalid
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -100,15 +101,27 @@ def read_nyu_h5(
 
 
 def list_nyu_h5(root: str | Path, split: str) -> list[Path]:
-    """Sorted h5 frames ``root/<split>/<scene>/<name>.h5``.
+    """Sorted h5 frames ``root/<split>/<scene>/<name>.h5`` (hidden files, such as a writer's temporary ones, skipped).
 
     Raises:
-        NyuFormatError: the split folder is missing or holds no frames.
+        NyuFormatError: the split folder is missing or holds no frames, or ``root`` is the partial output of a
+            ``dit-sim nyu`` run that did not finish (its ``sim_info.json`` says ``"complete": false``).
     """
+    info = Path(root) / "sim_info.json"
+    if info.is_file():
+        try:
+            partial = json.loads(info.read_text()).get("complete", True) is False
+        except (OSError, ValueError, AttributeError):
+            partial = False
+        if partial:
+            raise NyuFormatError(
+                f"{root}: partial output of a dit-sim run that did not finish ({info} says complete=false); "
+                "run dit-sim nyu again into this folder"
+            )
     d = Path(root) / split
     if not d.is_dir():
         raise NyuFormatError(f"{d}: missing folder (expected {Path(root)}/<split>/<scene>/<name>.h5)")
-    files = sorted(d.glob("*/*.h5"))
+    files = sorted(p for p in d.glob("*/*.h5") if not p.name.startswith("."))
     if not files:
         raise NyuFormatError(f"{d}: no h5 frames found (expected {d}/<scene>/<name>.h5)")
     return files

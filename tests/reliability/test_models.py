@@ -1,5 +1,5 @@
-"""Models: a folder mixing two exports is refused at load, an interrupted export leaves the old model, and a
-model the runtime cannot feed is refused before any frame."""
+"""Models: a folder mixing two exports, or whose manifest records no file hashes, is refused at load; an
+interrupted export leaves the old model; a model the runtime cannot feed is refused before any frame."""
 
 import json
 import shutil
@@ -18,6 +18,29 @@ def test_folder_mixing_two_exports_is_refused(tmp_path):
     with pytest.raises(ModelError, match=r"prior\.onnx: SHA-256 does not match manifest\.json \(export fake-0\.1\)"):
         DepthNetwork(a)
     DepthNetwork(b)  # an untouched export loads
+
+
+def test_model_whose_manifest_has_no_file_hashes_is_refused(tmp_path):
+    old = write_model(tmp_path / "old", hashes=False)  # as dit-export wrote it before the hashes were added
+    with pytest.raises(ModelError) as e:
+        DepthNetwork(old)
+    msg = str(e.value)
+    assert (
+        msg.startswith(f"{old}: manifest.json records no file hashes") and "re-export the model with dit-export" in msg
+    )
+    DepthNetwork(write_model(tmp_path / "new"))  # the same model with its hashes loads
+
+
+def test_dit_slam_refuses_a_model_without_file_hashes_in_one_line(tiny_seq, tmp_path, capsys):
+    from apps.slam import main as slam_main
+
+    model = write_model(tmp_path / "old", hashes=False)
+    with pytest.raises(SystemExit) as e:
+        slam_main([f"sequence={tiny_seq}", f"out={tmp_path / 'o'}", "dense=true", f"model={model}", "progress=false"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert f"{model}: manifest.json records no file hashes" in err and "dit-export" in err
+    assert not (tmp_path / "o" / "trajectory.txt").exists()
 
 
 def test_shipped_manifest_records_the_hashes_of_its_files():

@@ -72,3 +72,30 @@ def test_a_new_run_in_an_old_run_directory_sets_the_old_checkpoints_aside(tmp_pa
     assert (dest / "checkpoints" / "best-step10.ckpt").read_bytes() == b"old best"
     assert (dest / "metrics.json").is_file() and not (run / "checkpoints").exists()
     assert set_aside_earlier_run(run) is None
+
+
+@pytest.mark.parametrize("debug", ["", "--debug", "HYDRA_FULL_ERROR=1"])
+def test_fit_expected_failure_is_one_line_and_exit_2_with_the_traceback_on_request(tmp_path, debug):
+    import os
+    import subprocess
+    import sys
+
+    from tests.train.conftest import REPO
+
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env.pop("HYDRA_FULL_ERROR", None)
+    if debug.startswith("HYDRA"):
+        env["HYDRA_FULL_ERROR"] = "1"
+    missing = tmp_path / "no" / "last.ckpt"
+    cmd = [sys.executable, "train/fit.py", f"ckpt_path={missing}", f"hydra.run.dir={tmp_path / 'run'}"]
+    p = subprocess.run(
+        cmd + ([debug] if debug == "--debug" else []), cwd=REPO, env=env, capture_output=True, text=True, timeout=300
+    )
+    err = p.stderr.strip()
+    assert p.returncode == 2, err[-2000:]
+    assert err.splitlines()[-1] == f"fit: ckpt_path={missing} does not exist"
+    if debug:
+        assert "Traceback (most recent call last)" in err and "FileNotFoundError" in err
+    else:
+        assert len(err.splitlines()) == 1 and "Traceback" not in err  # nothing else: checked before any work
+    assert not (tmp_path / "run" / "checkpoints").exists()

@@ -21,6 +21,12 @@ ORB-SLAM3 uses a **home-trained vocabulary** (``benchmarks.peers.vocab``): the p
 downloaded here; it is trained on frames of a sequence rendered for it only (``--vocab-preset``, seed 100, not
 an evaluated sequence) plus the real RGB-D frames of ``../shared/data/rgbd_real`` when present, and cached.
 
+Where a peer beats us: ``python -m benchmarks.peers.diagnose`` (error over time, scale per window, drift, IMU-only
+propagation; ``benchmarks/results/peers_diagnosis_*.json``), ``python -m benchmarks.peers.variants`` (the sequence
+with one realism effect taken out, for ablations) and ``python -m benchmarks.peers.plot_errors`` (per-frame error).
+``--merge`` / ``--combine`` replace the rows and runs of the (system, sequence) pairs run again and keep the rest,
+with the commands, notes and vocabulary.
+
 Rows of ``benchmarks/results/peers.json``: ``{"system", "sequence", "ate_m", "alignment", "tracked_frac", "fps",
 "cpu_ms_per_frame", "runs", ...}`` (median over runs; ``ate_min_m``/``ate_max_m`` the range, ``losses``,
 ``resets``, ``note``), and ``ratios``: our ATE and frames/s over each peer's, per sequence and alignment.

@@ -21,6 +21,12 @@ ORB-SLAM3 uses a **home-trained vocabulary** (``benchmarks.peers.vocab``): the p
 downloaded here; it is trained on frames of a sequence rendered for it only (``--vocab-preset``, seed 100, not
 an evaluated sequence) plus the real RGB-D frames of ``../shared/data/rgbd_real`` when present, and cached.
 
+Where a peer beats us: ``python -m benchmarks.peers.diagnose`` (error over time, scale per window, drift, IMU-only
+propagation; ``benchmarks/results/peers_diagnosis_*.json``), ``python -m benchmarks.peers.variants`` (the sequence
+with one realism effect taken out, for ablations) and ``python -m benchmarks.peers.plot_errors`` (per-frame error).
+``--merge`` / ``--combine`` replace the rows and runs of the (system, sequence) pairs run again and keep the rest,
+with the commands, notes and vocabulary.
+
 Rows of ``benchmarks/results/peers.json``: ``{"system", "sequence", "ate_m", "alignment", "tracked_frac", "fps",
 "cpu_ms_per_frame", "runs", ...}`` (median over runs; ``ate_min_m``/``ate_max_m`` the range, ``losses``,
 ``resets``, ``note``), and ``ratios``: our ATE and frames/s over each peer's, per sequence and alignment.
@@ -318,21 +324,41 @@ def print_table(rows: list[dict]) -> None:
         )
 
 
+def merge_results(old: dict, new: dict) -> dict:
+    """``old`` with the rows and runs of every (system, sequence) that ``new`` ran replaced by ``new``'s; the
+    commands, notes and the vocabulary's description of both are kept (a merge that only reruns ``dit-slam``
+    has no vocabulary of its own), and the ratios are recomputed."""
+    done = {(r["system"], r["sequence"]) for r in new.get("rows", [])}
+    rows = [r for r in old.get("rows", []) if (r["system"], r["sequence"]) not in done] + list(new.get("rows", []))
+    runs = [r for r in old.get("runs", []) if (r.get("system"), r.get("sequence")) not in done]
+    commands = list(old.get("commands") or [old.get("command")]) + list(new.get("commands") or [new.get("command")])
+    commands = [c for c in commands if c]
+    vocabs = [v for v in (old.get("vocabulary"), new.get("vocabulary")) if v]
+    notes = list(old.get("notes") or [])
+    notes += [n for n in new.get("notes") or [] if n not in notes]
+    loads = list((old.get("machine") or {}).get("loadavg_each_run") or [(old.get("machine") or {}).get("loadavg")])
+    loads += list((new.get("machine") or {}).get("loadavg_each_run") or [(new.get("machine") or {}).get("loadavg")])
+    return {
+        **old,
+        **{k: v for k, v in new.items() if v is not None},
+        "command": " ; then ".join(commands),
+        "commands": commands,
+        "machine": {**(old.get("machine") or {}), **(new.get("machine") or {}), "loadavg_each_run": loads},
+        "vocabulary": " | ".join(dict.fromkeys(vocabs)) if vocabs else None,
+        "rows": rows,
+        "ratios": ratios(rows),
+        "runs": runs + list(new.get("runs", [])),
+        "notes": notes,
+    }
+
+
 def combine(files: list[Path], out: Path, notes: list[str] | None = None) -> dict:
-    """Merge result files of parallel invocations (rows of a later file replace the same system and sequence)."""
-    parts = [json.loads(f.read_text()) for f in files]
-    rows: dict = {}
-    for p in parts:
-        for r in p["rows"]:
-            rows[(r["system"], r["sequence"], r["alignment"])] = r
-    res = {**parts[0]}
-    res["command"] = " & ".join(p["command"] for p in parts) + ", then python benchmarks/bench_peers.py --combine "
-    res["command"] += " ".join(str(f) for f in files) + f" --out {out}" + (" --note ..." if notes else "")
-    res["rows"] = list(rows.values())
-    res["ratios"] = ratios(res["rows"])
-    res["runs"] = [r for p in parts for r in p.get("runs", [])]
-    res["notes"] = [n for p in parts for n in p.get("notes", [])] + list(notes or [])
-    res["machine"] = {**res["machine"], "loadavg_each_run": [p["machine"].get("loadavg") for p in parts]}
+    """Merge result files (runs made one after another or in parallel) into ``out``: a later file's rows and
+    runs replace those of the same system and sequence (:func:`merge_results`); ``notes`` are added."""
+    res = json.loads(files[0].read_text())
+    for f in files[1:]:
+        res = merge_results(res, json.loads(f.read_text()))
+    res["notes"] = list(res.get("notes") or []) + [n for n in notes or [] if n not in (res.get("notes") or [])]
     print_table(res["rows"])
     write_json(out, res)
     print(f"wrote {out}")
@@ -362,7 +388,7 @@ def main(argv: list[str] | None = None) -> dict:
         "--combine",
         nargs="+",
         metavar="JSON",
-        help="only merge these result files (runs made in parallel) into --out, recomputing the ratios",
+        help="only merge these result files (later ones replace the same system and sequence) into --out",
     )
     ap.add_argument("--note", action="append", default=[], help="a line for the report page's notes (repeatable)")
     args = ap.parse_args(argv)
@@ -398,11 +424,6 @@ def main(argv: list[str] | None = None) -> dict:
                     flush=True,
                 )
             rows += aggregate(system, name, runs)
-    if args.merge and Path(args.out).is_file():
-        old = json.loads(Path(args.out).read_text())
-        done = {(r["system"], r["sequence"]) for r in rows}
-        rows = [r for r in old.get("rows", []) if (r["system"], r["sequence"]) not in done] + rows
-    print_table(rows)
     res = {
         "command": "python benchmarks/bench_peers.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "machine": slam_machine(loadavg=list(os.getloadavg())),
@@ -417,6 +438,9 @@ def main(argv: list[str] | None = None) -> dict:
         "runs": [{k: v for k, v in r.items()} for r in raw],
         "notes": args.note,
     }
+    if args.merge and Path(args.out).is_file():
+        res = merge_results(json.loads(Path(args.out).read_text()), res)
+    print_table(res["rows"])
     write_json(args.out, res)
     print(f"wrote {args.out}")
     return res

@@ -756,6 +756,60 @@ def _mm_range(r: dict) -> str:
     return f" ({_num(r['ate_min_m'], 1, 1e3)}-{_num(r['ate_max_m'], 1, 1e3)})"
 
 
+def _peers_diagnosis() -> list[str]:
+    """The ``benchmarks.peers.diagnose`` tables of ``benchmarks/results/peers_diagnosis_*.json`` (one a sequence)."""
+    out = []
+    for f in sorted(RESULTS.glob("peers_diagnosis_*.json")):
+        d = _load(f)
+        seq = f.stem[len("peers_diagnosis_") :]
+        w = d.get("common_window_s") or [math.nan, math.nan]
+        rows = []
+        for label, r in d.get("systems", {}).items():
+            d1, d5 = r.get("drift_1s", {}), r.get("drift_5s", {})
+            rows.append(
+                [
+                    label,
+                    _num(r.get("ate_sim3_m"), 1, 1e3),
+                    _num(r.get("ate_sim3_common_m"), 1, 1e3),
+                    _num(r.get("window_ate_median_m"), 1, 1e3),
+                    _num(r.get("window_scale_spread"), 1, 100, " %"),
+                    _num(d1.get("trans_rmse_m"), 1, 1e3),
+                    _num(d5.get("trans_rmse_m"), 1, 1e3),
+                    _num(d5.get("yaw_median_deg"), 2),
+                ]
+            )
+        imu = d.get("imu_only", {})
+        rows.append(
+            ["IMU only, from the ground-truth state", "", "", "", ""]
+            + [_num(imu.get(k, {}).get("trans_rmse_m"), 1, 1e3) for k in ("drift_1s", "drift_5s")]
+            + [_num(imu.get("drift_5s", {}).get("yaw_median_deg"), 2)]
+        )
+        out += [
+            f"Where the error on `{seq}` comes from (`benchmarks.peers.diagnose`, camera frame; common window "
+            f"{_num(w[0], 2)}-{_num(w[1], 2)} s; window = each 6 s fitted alone with Sim(3); drift = RMSE of the "
+            "relative motion over 1 s / 5 s after the global Sim(3) scale):",
+            "",
+            _table(
+                [
+                    "run",
+                    "ATE Sim3 [mm]",
+                    "on common window",
+                    "6 s windows: median ATE [mm]",
+                    "window scale spread",
+                    "1 s drift [mm]",
+                    "5 s drift [mm]",
+                    "5 s yaw drift [deg]",
+                ],
+                rows,
+            ),
+            "",
+            f"- source: [`{f.relative_to(REPO).as_posix()}`](../{f.relative_to(REPO).as_posix()}); "
+            f"command: `{d.get('command', 'python -m benchmarks.peers.diagnose')}`",
+            "",
+        ]
+    return out
+
+
 def peers_page() -> str | None:
     """``reports/peers.md``: the side-by-side table of ``benchmarks/results/peers.json`` (None without it)."""
     f = RESULTS / "peers.json"
@@ -838,6 +892,7 @@ def peers_page() -> str | None:
         ]
     if d.get("notes"):
         parts += ["Notes:", ""] + [f"- {n}" for n in d["notes"]] + [""]
+    parts += _peers_diagnosis()
     for png in sorted(PEERS_PAGE.parent.glob("peers_*.png")):
         seq = png.stem[len("peers_") :]
         parts += [

@@ -2,7 +2,7 @@
 its score (Sim(3) for the monocular peers against the camera frame; Sim(3) for the inertial systems against the
 body frame, so that every curve is scale-free and comparable).
 
-    python -m benchmarks.peers.plot_errors --work outputs/peers/runs_A --sequence textured_s0 \\
+    python -m benchmarks.peers.plot_errors --work outputs/peers/runs_A [more folders] --sequence textured_s0 \\
         --data outputs/peers/seq --out reports/peers_textured_s0.png
 """
 
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> Path:
     from runtime.io.tum import read_tum
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--work", required=True, help="bench_peers --work folder")
+    ap.add_argument("--work", required=True, nargs="+", help="bench_peers --work folders (the first with a run wins)")
     ap.add_argument("--sequence", required=True)
     ap.add_argument("--data", required=True, help="bench_peers --data folder")
     ap.add_argument("--out", required=True)
@@ -51,9 +51,11 @@ def main(argv: list[str] | None = None) -> Path:
     fig, ax = plt.subplots(figsize=(9, 3.6))
     t0 = int(seq.frame_ts[0])
     for system in scoring.SYSTEMS:
-        f = Path(a.work) / a.sequence / f"{system}_run0" / "trajectory.txt"
-        if not f.is_file() or f.stat().st_size == 0:
+        found = [Path(w) / a.sequence / f"{system}_run0" / "trajectory.txt" for w in a.work]
+        found = [f for f in found if f.is_file() and f.stat().st_size > 0]
+        if not found:
             continue
+        f = found[0]
         est_ts, est_T = read_tum(f)
         if len(est_ts) < 3:
             continue

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.bench_peers import aggregate, parse_sequence, ratios
+from benchmarks.bench_peers import aggregate, merge_results, parse_sequence, ratios
 from benchmarks.peers import scoring, settings, vocab
 from runtime.io.sensor_yaml import load_sensor_yaml
 
@@ -237,3 +237,53 @@ def test_per_frame_errors_follow_the_scoring():
     rmse = float(np.sqrt(np.mean(err**2)))
     ref = scoring.score("cuvslam-mono", gt_ts, est, gt_ts, gt_T, T_b_c)["sim3"]["ate_m"]
     assert rmse == pytest.approx(ref, rel=1e-9) and 0.005 < rmse < 0.02
+
+
+def _result(command, rows, runs, vocabulary=None, notes=()):
+    return {
+        "command": command,
+        "machine": {"cpus": 2, "loadavg": [1.0, 1.0, 1.0]},
+        "vocabulary": vocabulary,
+        "rows": rows,
+        "runs": runs,
+        "notes": list(notes),
+    }
+
+
+def _row(system, sequence, ate, alignment="sim3"):
+    return {
+        "system": system,
+        "sequence": sequence,
+        "alignment": alignment,
+        "ate_m": ate,
+        "tracked_frac": 1.0,
+        "fps": 10.0,
+        "cpu_ms_per_frame": 50.0,
+    }
+
+
+def test_merge_keeps_vocabulary_notes_and_other_runs():
+    old = _result(
+        "bench_peers.py --sequences a b",
+        [_row("orbslam3-mono", "a", 0.01), _row("dit-slam-sparse", "a", 0.02), _row("dit-slam-sparse", "b", 0.03)],
+        [{"system": "orbslam3-mono", "sequence": "a"}, {"system": "dit-slam-sparse", "sequence": "a", "run": 0}],
+        vocabulary="home-trained",
+        notes=["a note"],
+    )
+    new = _result(
+        "bench_peers.py --sequences a --systems dit-slam-sparse --merge",
+        [_row("dit-slam-sparse", "a", 0.005)],
+        [{"system": "dit-slam-sparse", "sequence": "a", "run": 1}],
+    )
+    m = merge_results(old, new)
+    # a rerun of ours alone keeps the peer's vocabulary, the notes and the peer's runs; ours are replaced
+    assert m["vocabulary"] == "home-trained" and m["notes"] == ["a note"]
+    assert m["runs"] == [
+        {"system": "orbslam3-mono", "sequence": "a"},
+        {"system": "dit-slam-sparse", "sequence": "a", "run": 1},
+    ]
+    ates = {(r["system"], r["sequence"]): r["ate_m"] for r in m["rows"]}
+    assert ates == {("orbslam3-mono", "a"): 0.01, ("dit-slam-sparse", "a"): 0.005, ("dit-slam-sparse", "b"): 0.03}
+    assert m["commands"] == [old["command"], new["command"]] and len(m["machine"]["loadavg_each_run"]) == 2
+    (q,) = m["ratios"]  # recomputed from the merged rows
+    assert q["sequence"] == "a" and q["ate_ratio"] == pytest.approx(0.5)

@@ -224,7 +224,7 @@ def _table1() -> list[str]:
         ]
         shipped = _nb_markdown(nb, "shipped default (ONNX)")
         if shipped:
-            out += ["The shipped default model through ONNX Runtime, same frames (notebook 01):", ""]
+            out += ["The default model shipped when notebook 01 last ran, through ONNX Runtime, same frames:", ""]
             out += [shipped.partition("\n\n")[2].strip() or shipped, ""]
     vm = REPO / "runtime" / "assets" / "default_model" / "val_metrics.json"
     if vm.is_file():
@@ -247,7 +247,8 @@ def _table1() -> list[str]:
             _source_block(
                 [vm],
                 "python benchmarks/eval_onnx_depth.py --model runtime/assets/default_model --n-val 20 "
-                "--out runtime/assets/default_model/val_metrics.json",
+                + ("--realism " if m.get("realism") else "")
+                + "--out runtime/assets/default_model/val_metrics.json",
                 "not recorded in the JSON (see runtime/assets/default_model/README.md: 2-core AMD EPYC, CPU only)",
             ),
             "",
@@ -383,7 +384,11 @@ def _dense_model(d: dict) -> str:
         return "the first shipped depth model (2026-11-21, 600 steps; regenerated-val RMSE 0.293 m)"
     sha = m.get("sha256") or {}
     same = bool(sha) and all(_shipped_sha256(f) == h for f, h in sha.items())
-    return "the shipped depth model" if same else f"the depth model in `{m.get('dir')}`"
+    if same:
+        return "the shipped depth model"
+    if str(m.get("dir", "")).rstrip("/").endswith("runtime/assets/default_model"):
+        return "an earlier shipped depth model (its files differ from today's)"
+    return f"the depth model in `{m.get('dir')}`"
 
 
 def _table3() -> list[str]:

@@ -261,15 +261,15 @@ def _export_into(net, out_dir: Path, modality, height, width, opset, delta, n_pa
     in_channels = int(net.in_channels)
     code_dim = int(net.code_dim)
     image = example_inputs(in_channels, height, width, 1, seed=123)[0]
+    feed = prior_inputs(net, image)
     with torch.no_grad():
-        _, feats = net.prior(image)
+        _, feats = net.prior(*feed.values())
     n_feat = len(feats)
     if n_feat != DecoderGraph.N_FEATURES:
         raise ValueError(f"the decoder takes {n_feat} features; the exporter handles {DecoderGraph.N_FEATURES}")
     feat_names = [f"feat{i}" for i in range(n_feat)]
 
     prior_path, decoder_path = out_dir / "prior.onnx", out_dir / "decoder.onnx"
-    feed = prior_inputs(net, image)
     _export(
         PriorGraph(net).eval(), tuple(feed.values()), prior_path, list(feed), ["uncertainty", *feat_names], None, opset
     )

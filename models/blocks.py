@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from runtime.densify import DEFAULT_FILL_M, network_fill
+
 #: Network input channels per modality: image channels in [0, 1], then (``*s``) one sparse-depth channel [m].
 MODALITY_CHANNELS: dict[str, int] = {"rgb": 3, "rgbs": 4, "gray": 1, "grays": 2}
 
@@ -276,10 +278,11 @@ class InputNorm(nn.Module):
         return torch.cat([img, *self.depth_log(x[:, self.image_channels :])], dim=1)
 
 
-def sample_scale(sparse: torch.Tensor, default_depth: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+def sample_scale(sparse: torch.Tensor, default_depth: float = DEFAULT_FILL_M) -> tuple[torch.Tensor, torch.Tensor]:
     """Sparse depth (B, 1, H, W) [m, 0 = none] -> (sample mask, scale (B, 1, 1, 1) [m]).
 
-    The scale is the geometric mean of the samples ``exp(mean log d)``, ``default_depth`` without samples.
+    The scale is the geometric mean of the samples ``exp(mean log d)``, ``default_depth`` without samples (the
+    constant :func:`linear_fill` gives then, so that the relative input is 0).
 
     >>> sp = torch.zeros(1, 1, 4, 4); sp[0, 0, 0, 0] = 2.0; sp[0, 0, 3, 3] = 8.0
     >>> mask, scale = sample_scale(sp)
@@ -300,8 +303,6 @@ def linear_fill(sparse: torch.Tensor) -> torch.Tensor:
     their hull; a constant without samples). Computed with scipy on the CPU: it is an input of the relative
     network (``prior.onnx`` takes it as ``fill``), not part of the graph.
     """
-    from runtime.densify import network_fill
-
     if sparse.dim() != 4 or sparse.shape[1] != 1:
         raise ValueError(f"sparse must have shape (B, 1, H, W), got {tuple(sparse.shape)}")
     out = np.stack([network_fill(x) for x in sparse.detach().float().cpu().numpy()[:, 0]])

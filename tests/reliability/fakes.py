@@ -14,6 +14,19 @@ import numpy as np
 N_FEAT = 6
 
 
+def fail_on_call(real, n: int, calls: list, error: BaseException | type = KeyboardInterrupt):
+    """``real`` wrapped to fail on its ``n``-th call: every call appends its first argument to ``calls``, the
+    ``n``-th raises ``error`` (Ctrl-C by default) instead of calling ``real``."""
+
+    def wrapped(*args, **kwargs):
+        calls.append(args[0] if args else None)
+        if len(calls) == n:
+            raise error
+        return real(*args, **kwargs)
+
+    return wrapped
+
+
 def _prior(channels: int, h: int, w: int, bias: float):
     from onnx import TensorProto, helper
 

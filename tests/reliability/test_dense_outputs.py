@@ -7,6 +7,7 @@ import pytest
 
 from runtime.dense import map as dense_map
 from runtime.io.ply import read_ply
+from tests.reliability.fakes import fail_on_call
 
 
 def _listing(folder):
@@ -48,13 +49,7 @@ def test_dense_map_ply_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
 
 def test_keyframe_depth_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
     real, calls = dense_map.save_keyframe_maps, []
-
-    def fails_at_the_second(out, name, *a, **k):
-        calls.append(name)
-        if len(calls) == 2:
-            raise OSError("disk full")
-        return real(out, name, *a, **k)
-
+    fails_at_the_second = fail_on_call(real, 2, calls, OSError("disk full"))
     folder = tmp_path / "keyframe_depth"
     monkeypatch.setattr(dense_map, "save_keyframe_maps", fails_at_the_second)
     with pytest.raises(OSError, match="disk full"):
@@ -84,15 +79,8 @@ def test_a_dense_run_whose_keyframe_maps_fail_leaves_no_dense_output(tiny_seq, t
     from runtime.run import run_sequence
     from tests.reliability.fakes import write_model
 
-    real, calls = dense_map.save_keyframe_maps, []
-
-    def fails_at_the_third(out, name, *a, **k):
-        calls.append(name)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real(out, name, *a, **k)
-
-    monkeypatch.setattr(dense_map, "save_keyframe_maps", fails_at_the_third)
+    calls = []
+    monkeypatch.setattr(dense_map, "save_keyframe_maps", fail_on_call(dense_map.save_keyframe_maps, 3, calls))
     out = tmp_path / "o"
     cfg = DenseConfig(start_after_s=0.0)
     with pytest.raises(KeyboardInterrupt):

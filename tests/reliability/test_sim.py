@@ -9,6 +9,8 @@ import os
 import numpy as np
 import pytest
 
+from tests.reliability.fakes import fail_on_call
+
 sim_euroc = pytest.importorskip("sim.euroc")
 
 
@@ -24,15 +26,7 @@ def test_scale_20_is_refused_up_front_with_a_memory_estimate(tmp_path, monkeypat
 
 def test_interrupted_rendering_removes_its_partial_output_and_a_rerun_works(tmp_path, monkeypatch):
     render = sim_euroc._render_frame
-    calls = []
-
-    def interrupted(job):
-        calls.append(job)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return render(job)
-
-    monkeypatch.setattr(sim_euroc, "_render_frame", interrupted)
+    monkeypatch.setattr(sim_euroc, "_render_frame", fail_on_call(render, 3, []))
     out = tmp_path / "s"
     with pytest.raises(KeyboardInterrupt):
         sim_euroc.write_euroc_sequence(out, duration=3.0, scale=0.25, progress=False)
@@ -164,15 +158,7 @@ def test_interrupted_imu_completion_removes_its_partial_output_and_a_rerun_equal
 
     args = [f"source={tiny_seq}", "vibration=false", "seed=2"]
     main(["imu", f"out={tmp_path / 'ref'}", *args])
-    real, links = os.symlink, []
-
-    def interrupted(src, dst, *a, **k):  # Ctrl-C after 5 of the images were linked
-        links.append(dst)
-        if len(links) == 6:
-            raise KeyboardInterrupt
-        return real(src, dst, *a, **k)
-
-    monkeypatch.setattr(os, "symlink", interrupted)
+    monkeypatch.setattr(os, "symlink", fail_on_call(os.symlink, 6, []))  # Ctrl-C after 5 of the images were linked
     out = tmp_path / "out"
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import time
 from pathlib import Path
 
@@ -135,6 +136,16 @@ def model_identity(model_dir: str | None) -> dict:
     }
 
 
+def named_sequence(path: str) -> tuple[str, int, Path]:
+    """``(name, seed, root)`` of an existing sequence folder given to ``--sequences``: a trailing ``_s<N>`` of its
+    name is the seed (``euroc_flight_30s_s2`` -> ``("euroc_flight_30s", 2)``), else the seed is 0."""
+    root = Path(path)
+    if not (root / "mav0" / "cam0" / "data.csv").is_file():
+        raise SystemExit(f"bench_dense: {root} is not an EuRoC-layout sequence (no mav0/cam0/data.csv)")
+    m = re.fullmatch(r"(.+)_s(\d+)", root.name)
+    return (m.group(1), int(m.group(2)), root) if m else (root.name, 0, root)
+
+
 def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
     """One row of the table from a run's ``metrics.json`` dict ``m``: ATE [m], FPS, keyframes, decoder runs, the
     drift found at a relocalisation [m] and the depth metrics of (a) sparse points, (b) prior, (c) optimised."""
@@ -217,8 +228,27 @@ def bars(rows: list[dict]) -> dict:
                 out[f"{preset}_{mode}_rmse_c_lt_b"] = {"prior": b, "optimised": c, "met": bool(c < b)}
         if "dense_eq13_14" in modes:
             f = min(r["fps"] for r in rows if r["preset"] == preset and r["mode"] == "dense_eq13_14")
-            out[f"{preset}_dense_fps_ge_15"] = {"fps_min": f, "met": bool(f >= 15)}
+            out[f"{preset}_dense_fps_ge_20"] = {"fps_min": f, "met": bool(f >= 20)}
+            if "sparse" in modes:
+                out[f"{preset}_dense_minus_sparse"] = paired(rows, preset, "dense_eq13_14", "sparse")
     return out
+
+
+def paired(rows: list[dict], preset: str, mode: str, ref: str) -> dict:
+    """Paired difference of ``mode`` against ``ref`` over the seeds both ran on ``preset``: mean ATE difference
+    [m] with its standard error, and the mean frames/s ratio (runs of one seed follow each other)."""
+    by = {(r["mode"], r["seed"]): r for r in rows if r["preset"] == preset}
+    seeds = sorted(s for (m, s) in by if m == mode and (ref, s) in by)
+    d = np.array([by[mode, s]["ate"] - by[ref, s]["ate"] for s in seeds])
+    ratio = np.array([by[mode, s]["fps"] / by[ref, s]["fps"] for s in seeds])
+    se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
+    return {
+        "seeds": seeds,
+        "ate_diff_mean": float(d.mean()) if d.size else float("nan"),
+        "ate_diff_se": se,
+        "fps_ratio_mean": float(ratio.mean()) if ratio.size else float("nan"),
+        "met": bool(d.size and d.mean() <= 0),
+    }
 
 
 def resumable_rows(path: Path, args: dict, machine: dict) -> dict[tuple[str, int, str], dict]:
@@ -240,7 +270,14 @@ def resumable_rows(path: Path, args: dict, machine: dict) -> dict[tuple[str, int
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--presets", nargs="+", default=["textured", "whitewall"])
+    ap.add_argument("--presets", nargs="*", default=["textured", "whitewall"])
+    ap.add_argument(
+        "--sequences",
+        nargs="*",
+        default=[],
+        help="existing EuRoC-layout folders to run as well (e.g. dit-sim imu output of the MH_05 excerpt); a "
+        "trailing _s<N> of a folder's name is its seed",
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--scale", type=float, default=1.0, help="image scale of the rendered sequences")
@@ -291,27 +328,28 @@ def main(argv: list[str] | None = None) -> int:
         "complete": False,
         "rows": rows,
     }
-    for preset in args.presets:
-        for seed in args.seeds:
-            root = None
-            for mode in args.modes:
-                if (preset, seed, mode) in done:
-                    rows.append(done[preset, seed, mode])
-                    print(f"bench_dense: {preset} seed {seed} {mode}: kept from the earlier invocation", flush=True)
-                    continue
-                root = root or sequence(Path(args.data), preset, args.duration, seed, args.scale)
-                t0 = time.perf_counter()
-                seq = read_euroc(root)
-                m = run_mode(seq, out / f"{preset}_s{seed}_{mode}", mode, args.set, slam_cfg, args.model)
-                rows.append(run_row(preset, seed, mode, m))
-                r = rows[-1]
-                print(
-                    f"bench_dense: {preset} seed {seed} {mode}: ATE {r['ate']:.4f} m, {r['fps']:.1f} FPS, "
-                    f"RMSE a/b/c {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f} "
-                    f"({time.perf_counter() - t0:.0f} s)",
-                    flush=True,
-                )
-                write_json(out / "bench_dense.json", res)  # an interruption loses only the run in progress
+    jobs = [(preset, seed, None) for preset in args.presets for seed in args.seeds]
+    jobs += [named_sequence(p) for p in args.sequences]
+    for preset, seed, given in jobs:
+        root = given
+        for mode in args.modes:
+            if (preset, seed, mode) in done:
+                rows.append(done[preset, seed, mode])
+                print(f"bench_dense: {preset} seed {seed} {mode}: kept from the earlier invocation", flush=True)
+                continue
+            root = root or sequence(Path(args.data), preset, args.duration, seed, args.scale)
+            t0 = time.perf_counter()
+            seq = read_euroc(root)
+            m = run_mode(seq, out / f"{preset}_s{seed}_{mode}", mode, args.set, slam_cfg, args.model)
+            rows.append(run_row(preset, seed, mode, m))
+            r = rows[-1]
+            print(
+                f"bench_dense: {preset} seed {seed} {mode}: ATE {r['ate']:.4f} m, {r['fps']:.1f} FPS, "
+                f"RMSE a/b/c {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f} "
+                f"({time.perf_counter() - t0:.0f} s)",
+                flush=True,
+            )
+            write_json(out / "bench_dense.json", res)  # an interruption loses only the run in progress
     table = fmt_table(rows)
     b = bars(rows)
     print(table)

@@ -9,6 +9,8 @@ frame. To show them as pictures without a 3-D viewer:
   pixel, the nearest point (z-buffer), each point covering a ``(2 r + 1) x (2 r + 1)`` pixel square
   (``radius`` r); it returns the depth image (0 = empty), the colour image and the index of the point seen;
 * :func:`project_points` projects a polyline (e.g. a trajectory) into the same image, for overlays;
+* :func:`map_views` is the picture `dit-slam` writes of the dense map (`dense_map.png`): a top and an oblique view
+  with the trajectory;
 * :func:`align_se3` is the SE(3) alignment (Umeyama, no scale) of an estimated trajectory to ground truth,
   as a transform, so that the maps can be drawn in the ground-truth frame (``runtime.eval`` aligns the
   same way inside ``evo`` but returns only the aligned positions).
@@ -24,7 +26,7 @@ import numpy as np
 
 from runtime.geometry import Camera, inv_T, project_pinhole
 
-__all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3"]
+__all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3", "map_views"]
 
 
 @dataclass
@@ -204,3 +206,49 @@ def align_se3(est_ts: np.ndarray, est_T: np.ndarray, gt_ts: np.ndarray, gt_T: np
     T[:3, :3] = R
     T[:3, 3] = my - R @ mx
     return T
+
+
+def map_views(
+    xyz_w: np.ndarray,
+    rgb: np.ndarray | None,
+    trajectory_w: np.ndarray | None = None,
+    size: tuple[int, int] = (640, 480),
+    radius: int = 1,
+) -> np.ndarray:
+    """A picture of a map (``dense_map.png``): a top view and an oblique view side by side, each with the
+    trajectory drawn in red, from virtual cameras placed to frame the map's central 96 % (z is up, as in the SLAM
+    world frame).
+
+    Args:
+        xyz_w: (N, 3) map points; rgb: (N, 3) uint8 colours or None (grey).
+        trajectory_w: (M, 3) positions drawn as a polyline, or None.
+        size: (width, height) of each view.
+
+    Returns:
+        (height, 2 * width, 3) uint8 RGB image.
+    """
+    import cv2
+
+    p = np.asarray(xyz_w, dtype=np.float64).reshape(-1, 3)
+    traj = None if trajectory_w is None else np.asarray(trajectory_w, dtype=np.float64).reshape(-1, 3)
+    W, H = int(size[0]), int(size[1])
+    pts = p if p.shape[0] else (traj if traj is not None and traj.shape[0] else np.zeros((1, 3)))
+    lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
+    centre = 0.5 * (lo + hi)
+    r = max(0.5 * float(np.linalg.norm((hi - lo)[:2])), 0.25)  # horizontal radius framed [m]
+    views = []
+    for eye_offset, up in (((0.0, 0.0, 3.0), (0.0, 1.0, 0.0)), ((-1.6, -1.6, 1.4), (0.0, 0.0, 1.0))):
+        eye = centre + r * np.asarray(eye_offset)
+        T_w_c = look_at(eye, centre, up)
+        dist = float(np.linalg.norm(eye - centre))
+        f = 0.5 * min(W, H) * dist / (1.15 * r)
+        cam = Camera(f, f, (W - 1) / 2.0, (H - 1) / 2.0, W, H)
+        img = render_points(p, T_w_c, cam, rgb if rgb is not None else np.full(p.shape[0], 90), radius).rgb
+        img = np.ascontiguousarray(img)
+        if traj is not None and traj.shape[0] >= 2:
+            uv, _, ok = project_points(traj, T_w_c, cam)
+            line = np.round(uv[ok]).astype(np.int32).reshape(-1, 1, 2)
+            if line.shape[0] >= 2:
+                cv2.polylines(img, [line], False, (220, 30, 30), 2, cv2.LINE_AA)
+        views.append(img)
+    return np.concatenate(views, axis=1)

@@ -114,7 +114,9 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         metrics.update(mapper.finish(system.backend, out))
         tm = system.timing_summary()
         metrics["timing_dense_ms_per_frame"] = {
-            "network": tm.get("dense_network", 0.0),
+            "network": tm.get("dense_network", 0.0),  # on the background thread with DenseConfig.background
+            "keyframe_inputs": tm.get("dense_keyframe", 0.0),  # undistorted image and sparse depth, tracking thread
+            "waiting_for_network": tm.get("dense_wait", 0.0),  # tracking thread blocked on a network pass
             "factor_building": tm.get("dense_factors", 0.0),
             "optimisation": tm.get("optimize", 0.0) - tm.get("dense_factors", 0.0),
             "outputs_s": time.perf_counter() - t0,
@@ -126,6 +128,8 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         metrics["error"] = f"never initialised ({why})"
         log.error("never initialised: no trajectory (%s)", why)
     metrics.update(_evaluate(seq, ts, T, out, plot))
+    if plot and mapper is not None and mapper.dense_map is not None:
+        _write_map_picture(out / "dense_map.png", mapper.dense_map, T)
     metrics["segments"] = _segments(system, seq, ts, T, out)
     if recorder is not None:
         recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
@@ -297,6 +301,23 @@ def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict
         res["eval_error"] = f"{type(e).__name__}: {e}"
         log.error("evaluation failed: %s", e)
     return res
+
+
+def _write_map_picture(path: Path, dense_map: tuple, T: np.ndarray) -> None:
+    """``dense_map.png``: top and oblique views of the dense map (:func:`runtime.render.map_views`)."""
+    import cv2
+
+    from runtime.render import map_views
+
+    img = map_views(dense_map[0], dense_map[1], T[:, :3, 3] if len(T) else None)
+
+    def write(p: Path) -> None:
+        ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))
+        if not ok:
+            raise OSError(f"{path}: PNG encoding failed")
+        p.write_bytes(buf.tobytes())
+
+    atomic_write(path, write)
 
 
 def _read_image(seq, i: int):

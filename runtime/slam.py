@@ -500,7 +500,7 @@ class SlamSystem:
         t0 = self._toc("reloc", t0)
         if self.dense is not None:
             self.dense.on_keyframe(self.backend, kf.kf_id, frame_idx, image, self.tracker.current(ts).uv_u)
-            t0 = self._tic()  # the network's time is in the "dense_network" timer
+            t0 = self._tic()  # in the "dense_keyframe" and "dense_network" timers
         stats = self.backend.optimize()
         drop, n_out = self.backend.remove_outliers()
         if n_out > 0.05 * max(stats.get("n_factors", 1), 1):

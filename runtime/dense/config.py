@@ -105,6 +105,15 @@ class DenseConfig:
             join the window's optimisations (0: from the first one); a re-initialisation after a reset waits
             again. While the visual-inertial scale and gravity still converge, a biased depth network pulls
             them and that early error stays in the trajectory (``reports/``).
+        relin_tol: after an optimisation, a code keyframe's decoder is relinearised at its new code (Eq. 17: one
+            batch of C + 1 decodes) only when a component of the code moved more than this since its last
+            linearisation; between, the first-order expansion stands in
+            (:class:`runtime.dense.linearized.LinearizedDepth`). 0: whenever it moved.
+        background: run the network in a background thread while tracking goes on (ONNX Runtime releases the
+            GIL): each keyframe's prior with its decoder linearised at c = 0, and the relinearisation of the
+            codes an optimisation moved (Eq. 17). The optimisation of a new keyframe waits for the passes it
+            needs, except the new keyframe's own: its code joins from the next keyframe's optimisation on.
+            False: every pass on the tracking thread, and a keyframe's code joins at its own optimisation.
         save_maps: write per-keyframe depth / uncertainty maps.
         seed: sampler seed (combined with the keyframe ids of a pair).
         factors: the depth factors' settings.
@@ -117,6 +126,8 @@ class DenseConfig:
     n_consis: int = 300
     code_prior_sigma: float = 1.0
     start_after_s: float = 5.0
+    relin_tol: float = 0.1
+    background: bool = True
     save_maps: bool = True
     seed: int = 0
     factors: DepthFactorConfig = field(default_factory=DepthFactorConfig)
@@ -127,6 +138,8 @@ class DenseConfig:
             raise ValueError(f"n_code_keyframes={self.n_code_keyframes}: must be >= 1")
         if not self.start_after_s >= 0:
             raise ValueError(f"start_after_s={self.start_after_s}: must be >= 0")
+        if not self.relin_tol >= 0:
+            raise ValueError(f"relin_tol={self.relin_tol}: must be >= 0")
         if self.n_consis < 1:
             raise ValueError(f"n_consis={self.n_consis}: must be >= 1")
         if not self.code_prior_sigma > 0:

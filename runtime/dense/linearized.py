@@ -29,6 +29,7 @@ class LinearizedDepth:
         self.c0: np.ndarray | None = None
         self.D0: np.ndarray | None = None
         self.J0: np.ndarray | None = None
+        self._last: tuple[bytes, np.ndarray] | None = None  # the last expansion: (code offset, depth)
         self.n_relin = 0
 
     def _relin(self, code: np.ndarray) -> None:
@@ -36,6 +37,7 @@ class LinearizedDepth:
         self.D0 = self.D0.astype(np.float64)
         self.J0 = self.J0.astype(np.float64)
         self.c0 = np.asarray(code, np.float32).astype(np.float64)
+        self._last = None
         self.n_relin += 1
 
     def jacobian(self, code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -46,7 +48,10 @@ class LinearizedDepth:
         dc = np.asarray(code, np.float64) - self.c0
         if not dc.any():
             return self.D0, self.J0
-        return self.D0 + self.J0 @ dc, self.J0
+        key = dc.tobytes()
+        if self._last is None or self._last[0] != key:  # the factors of one keyframe ask at the same code
+            self._last = (key, self.D0 + self.J0 @ dc)
+        return self._last[1], self.J0
 
     def depth(self, code: np.ndarray) -> np.ndarray:
         return self.jacobian(code)[0]

@@ -8,8 +8,11 @@
 * **Network in the loop** (:meth:`DenseMapper.on_keyframe`): for each new keyframe the cam0 image is
   undistorted, mapped to the network size (``NetworkMapping``), and the sparse depth image of the map points
   the keyframe observes (projected with their current metric depth) is the ``grays`` sparse channel;
-  ``prior.onnx`` runs once per keyframe. The depth source (default: the network's prior as it is) may wrap it,
-  e.g. :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`.
+  ``prior.onnx`` runs once per keyframe, and the decoder is linearised at c = 0. With
+  ``DenseConfig.background`` (the default) that network pass runs in a background thread while tracking goes on
+  (ONNX Runtime releases the GIL), and the keyframe's code joins from the next keyframe's optimisation. The
+  depth source (default: the network's prior as it is) may wrap it, e.g.
+  :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`.
 * **Depth codes** (:meth:`DenseMapper.add_factors`, called by the backend before each LM run): ``C(k)`` in
   R^C for the newest keyframe and its ``n_code_keyframes - 1`` most co-visible active keyframes (Sec. 5.3,
   "five most co-visible keyframes"), each with the CVAE prior ``N(0, I)`` (``PriorFactorVector``); Eq. 13
@@ -33,6 +36,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -76,12 +80,19 @@ def network_depth(kd, frame_idx: int, camera: Camera, mapping: NetworkMapping):
 class _KfDense:
     kf_id: int
     frame_idx: int
-    provider: LinearizedDepth
+    job: Future  # -> LinearizedDepth: the network pass (prior, decoder linearised at c = 0)
     feat_uv: np.ndarray  # (F, 2) network pixels of the keyframe's tracked features
     image: np.ndarray  # (H, W) uint8 grey at network size
     code: np.ndarray  # (C,) current code
     had_code: bool = False
     evaluated: bool = False
+    relin: Future | None = None  # the relinearisation submitted after the last optimisation
+    lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
+
+    @property
+    def provider(self) -> LinearizedDepth:
+        """The keyframe's depth provider (waits for its network pass; re-raises its error)."""
+        return self.job.result()
 
 
 @dataclass
@@ -134,11 +145,12 @@ class DenseMapper:
         self.timers = timers if timers is not None else defaultdict(float)
         self.kfs: dict[int, _KfDense] = {}
         self.code_kfs: list[int] = []
-        self.per_kf_metrics: dict[int, dict] = {}
+        self.per_kf_metrics: dict[int, Future] = {}  # -> the keyframe's Table 2 metrics
         self.stats = _Stats()
         self.t_first_ns: int | None = None  # the window's first keyframe's time (start_after_s counts from it)
         self.armed_for: int | None = None  # the backend's init_kf_id that t_first_ns belongs to
         self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
+        self._pool: ThreadPoolExecutor | None = None  # the background network pass (DenseConfig.background)
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray) -> None:
@@ -160,10 +172,38 @@ class DenseMapper:
         if self.net.uses_sparse:
             uv, z = self._observed_points(backend, kf_id)
             sparse = sparse_depth_image(self.mapping.points_to_network(uv), z, (self.net.height, self.net.width))
-        kd = self.depth_source(self.net.prior(img_net, sparse), frame_idx, self.camera, self.mapping)
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
-        self.kfs[kf_id] = _KfDense(kf_id, frame_idx, LinearizedDepth(kd), feat, img_net, np.zeros(self.net.code_dim))
+        job = self._submit(self._network_pass, img_net, sparse, frame_idx)
+        self.kfs[kf_id] = _KfDense(kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim))
+        self.timers["dense_keyframe"] += time.perf_counter() - t0
+
+    def _submit(self, fn, *args) -> Future:
+        """Run ``fn(*args)`` on the network thread (``DenseConfig.background``; one worker, so that the passes
+        on one keyframe never overlap) or here; errors are raised where the result is read."""
+        if self.cfg.background:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dense-network")
+            return self._pool.submit(fn, *args)
+        job = Future()
+        try:
+            job.set_result(fn(*args))
+        except Exception as e:  # noqa: BLE001 - as from the thread: raised where the result is read
+            job.set_exception(e)
+        return job
+
+    def _exact(self, d: _KfDense, code: np.ndarray) -> np.ndarray:
+        """The exact decoder at ``code`` (on the network thread: the keyframe's cache is not shared)."""
+        return np.asarray(self._submit(d.provider.exact, np.asarray(code, np.float64)).result(), np.float64)
+
+    def _network_pass(self, img_net: np.ndarray, sparse: np.ndarray | None, frame_idx: int) -> LinearizedDepth:
+        """A keyframe's prior and its decoder linearised at c = 0 (where its code starts); runs in the background
+        thread with ``DenseConfig.background`` (ONNX Runtime releases the GIL while tracking goes on)."""
+        t0 = time.perf_counter()
+        kd = self.depth_source(self.net.prior(img_net, sparse), frame_idx, self.camera, self.mapping)
+        provider = LinearizedDepth(kd)
+        provider.relinearize(np.zeros(self.net.code_dim))
         self.timers["dense_network"] += time.perf_counter() - t0
+        return provider
 
     def _observed_points(self, backend, kf_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted pixels (N, 2) and depths (N,) of the landmarks with two or more views observed by
@@ -177,10 +217,27 @@ class DenseMapper:
 
     # ------------------------------------------------------------------ FactorProvider
     def _select(self, backend) -> list[int]:
+        """The code keyframes: the newest keyframe and its most co-visible ones. With ``background`` the
+        keyframe created just now waits for the next optimisation (its network pass runs meanwhile), so the
+        newest keyframe before it anchors the selection; the selection never depends on thread timing."""
         window = backend.window_ids()
+        if self.cfg.background:
+            window = window[:-1]  # the keyframe created just now
+        window = [k for k in window if k in self.kfs]
+        if not window:
+            return []
         newest = window[-1]
-        cand = [newest] + backend.covisible_keyframes(newest, len(window))
-        return [k for k in cand if k in self.kfs][: self.cfg.n_code_keyframes]
+        cand = [newest] + [k for k in backend.covisible_keyframes(newest, len(window) + 1) if k in window]
+        t0 = time.perf_counter()
+        sel = cand[: self.cfg.n_code_keyframes]
+        for k in sel:  # done long ago in the usual case
+            d = self.kfs[k]
+            d.job.result()
+            if d.relin is not None:
+                d.relin.result()
+                d.relin = None
+        self.timers["dense_wait"] += time.perf_counter() - t0
+        return sel
 
     def _arm_start(self, backend, kf_id: int) -> None:
         """Start the ``start_after_s`` wait at ``kf_id`` when it is the first keyframe after an initialisation
@@ -211,7 +268,6 @@ class DenseMapper:
         for k in sel:
             d = self.kfs[k]
             d.had_code = True
-            d.provider.relinearize(d.code)
             values.insert(C(k), np.asarray(d.code, np.float64))
             graph.push_back(gtsam.PriorFactorVector(C(k), np.zeros(Cd), prior_noise))
             if cfg.use_depth_residual:
@@ -279,6 +335,17 @@ class DenseMapper:
             t0 = time.perf_counter()
             self.probe([(self.kfs[k].provider, self.kfs[k].code) for k in self.code_kfs])
             self.timers["dense_approx_check"] += time.perf_counter() - t0
+        for k in self.code_kfs:  # the next optimisation's linearisation point, computed meanwhile
+            d = self.kfs[k]
+            lin = np.zeros_like(d.code) if d.lin_code is None else d.lin_code
+            if np.abs(d.code - lin).max() > self.cfg.relin_tol:
+                d.lin_code = d.code.copy()
+                d.relin = self._submit(self._relinearize, d.provider, d.lin_code)
+
+    def _relinearize(self, provider: LinearizedDepth, code: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        provider.relinearize(code)
+        self.timers["dense_network"] += time.perf_counter() - t0
 
     def on_marginalize(self, backend, kf_id: int) -> None:
         """A keyframe leaves the window: evaluate its depth (final code), free its network state."""
@@ -290,7 +357,7 @@ class DenseMapper:
 
     # ------------------------------------------------------------------ evaluation and outputs
     def final_depth(self, d: _KfDense) -> np.ndarray:
-        return np.asarray(d.provider.exact(d.code), np.float64)
+        return self._exact(d, d.code)
 
     def _evaluate(self, backend, d: _KfDense) -> None:
         if d.evaluated or not d.had_code or self.depth_gt is None:
@@ -302,11 +369,14 @@ class DenseMapper:
         gt_net = gt_depth_to_network(gt, self.camera, self.mapping)
         uv, z = self._observed_points(backend, d.kf_id)
         sp = sparse_depth_image(self.mapping.points_to_network(uv), z, gt_net.shape)
-        C = self.net.code_dim
-        self.per_kf_metrics[d.kf_id] = {
+        self.per_kf_metrics[d.kf_id] = self._submit(self._depth_errors, d.provider, d.code.copy(), gt_net, sp)
+
+    def _depth_errors(self, provider: LinearizedDepth, code: np.ndarray, gt_net: np.ndarray, sp: np.ndarray) -> dict:
+        """Table 2 metrics of a keyframe's sparse points, prior (c = 0) and optimised code (network thread)."""
+        return {
             "sparse": depth_metrics(sp, gt_net) if (sp > 0).any() and (gt_net[sp > 0] > 0).any() else None,
-            "prior": depth_metrics(np.asarray(d.provider.exact(np.zeros(C)), np.float64), gt_net),
-            "optimised": depth_metrics(self.final_depth(d), gt_net),
+            "prior": depth_metrics(np.asarray(provider.exact(np.zeros_like(code)), np.float64), gt_net),
+            "optimised": depth_metrics(np.asarray(provider.exact(code), np.float64), gt_net),
         }
 
     def finish(self, backend, out_dir: str | Path) -> dict:
@@ -329,7 +399,15 @@ class DenseMapper:
         xyz, rgb = fuse_depth_maps(depths, poses, self.net_cam, self.T_b_c, uncs, imgs, self.cfg.map)
         write_dense_map(out / "dense_map.ply", xyz, rgb)
         self.dense_map = (xyz, rgb)  # for the Rerun recording
-        return self._metrics(len(active), int(xyz.shape[0]))
+        res = self._metrics(len(active), int(xyz.shape[0]))
+        self.close()
+        return res
+
+    def close(self) -> None:
+        """Wait for the network thread's passes and stop it (a later keyframe starts a new one)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
     def _metrics(self, n_window: int, n_points: int) -> dict:
         st = self.stats
@@ -347,8 +425,9 @@ class DenseMapper:
         if self.probe is not None:
             res.update(self.probe.metrics())
         if self.per_kf_metrics:
+            per_kf = [job.result() for job in self.per_kf_metrics.values()]
             res["depth_metrics"] = {
-                stage: mean_metrics([m[stage] for m in self.per_kf_metrics.values() if m[stage] is not None])
+                stage: mean_metrics([m[stage] for m in per_kf if m[stage] is not None])
                 for stage in ("sparse", "prior", "optimised")
             }
             res["depth_metrics_keyframes"] = len(self.per_kf_metrics)

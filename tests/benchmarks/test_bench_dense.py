@@ -107,3 +107,29 @@ def test_model_reaches_the_runs_and_the_json_names_it(tmp_path, monkeypatch):
     assert res["model"]["sha256"]["decoder.onnx"] == hashlib.sha256((model / "decoder.onnx").read_bytes()).hexdigest()
     shipped = bench_dense.model_identity(None)
     assert shipped["shipped"] is True and shipped["sha256"] == res["model"]["sha256"]  # a copy: the same files
+
+
+def test_paired_difference_of_dense_against_sparse_over_common_seeds():
+    rows = [
+        {"preset": "p", "mode": "sparse", "seed": 0, "ate": 0.10, "fps": 40.0},
+        {"preset": "p", "mode": "dense_eq13_14", "seed": 0, "ate": 0.08, "fps": 20.0},
+        {"preset": "p", "mode": "sparse", "seed": 1, "ate": 0.20, "fps": 30.0},
+        {"preset": "p", "mode": "dense_eq13_14", "seed": 1, "ate": 0.21, "fps": 30.0},
+        {"preset": "p", "mode": "dense_eq13_14", "seed": 2, "ate": 9.0, "fps": 1.0},  # no sparse run: not paired
+        {"preset": "q", "mode": "sparse", "seed": 0, "ate": 5.0, "fps": 1.0},
+    ]
+    d = bench_dense.paired(rows, "p", "dense_eq13_14", "sparse")
+    assert d["seeds"] == [0, 1]
+    assert d["ate_diff_mean"] == pytest.approx(-0.005)  # -0.02 and +0.01
+    assert d["ate_diff_se"] == pytest.approx(0.015)  # std (ddof 1) 0.0212 / sqrt(2)
+    assert d["fps_ratio_mean"] == pytest.approx(0.75) and d["met"]
+
+
+def test_given_sequences_take_their_seed_from_the_folder_name(tmp_path):
+    for name in ("euroc_flight_30s_s2", "mh05"):
+        (tmp_path / name / "mav0" / "cam0").mkdir(parents=True)
+        (tmp_path / name / "mav0" / "cam0" / "data.csv").write_text("#\n")
+    assert bench_dense.named_sequence(str(tmp_path / "euroc_flight_30s_s2"))[:2] == ("euroc_flight_30s", 2)
+    assert bench_dense.named_sequence(str(tmp_path / "mh05"))[:2] == ("mh05", 0)
+    with pytest.raises(SystemExit, match="not an EuRoC-layout sequence"):
+        bench_dense.named_sequence(str(tmp_path / "nothing"))

@@ -3,6 +3,8 @@ mapper's parts: the decoder cache, the depth sources, the code keyframes and the
 
 import json
 from collections import defaultdict
+from concurrent.futures import Future
+from types import SimpleNamespace
 
 import gtsam
 import numpy as np
@@ -235,12 +237,26 @@ def test_code_keyframes_are_the_newest_and_its_covisible_ones():
             return [3, 5, 6, 8, 9]
 
         def covisible_keyframes(self, kf, n):
-            return [6] if kf == 9 else []  # only keyframe 6 shares landmarks with the newest
+            # only keyframe 6 shares landmarks with the newest; 8 shares with 9, 5 and 3
+            return {9: [6], 8: [5, 9, 3]}.get(kf, [])
 
-    m = DenseMapper.__new__(DenseMapper)
-    m.cfg = DenseConfig(n_code_keyframes=4)
-    m.kfs = dict.fromkeys(Backend().window_ids())
-    assert m._select(Backend()) == [9, 6]
+    def selection(background):
+        m = DenseMapper.__new__(DenseMapper)
+        m.cfg = DenseConfig(n_code_keyframes=4, background=background)
+        m.timers = defaultdict(float)
+        m.kfs = {k: SimpleNamespace(job=_done(k), relin=None) for k in Backend().window_ids()}
+        return m._select(Backend())
+
+    assert selection(False) == [9, 6]
+    # in the background the newest keyframe's network pass is still running: the one before it anchors, and the
+    # newest never joins (whatever the thread's timing)
+    assert selection(True) == [8, 5, 3]
+
+
+def _done(value) -> Future:
+    f = Future()
+    f.set_result(value)
+    return f
 
 
 def test_depth_factors_wait_start_after_s_from_the_first_keyframe():

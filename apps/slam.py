@@ -2,7 +2,7 @@
 
     dit-slam [sequence=DIR|FILE.bag [calib=DIR] [topics.image=...]] [out=DIR] [viz=none|rerun]
              [runtime=default|fast] [runtime.x.y=...]
-             [dense=true [model=DIR] [dense_settings.x=...]]
+             [dense=true|false [model=DIR] [dense_settings.x=...]]
 
 With no ``sequence`` it renders the default synthetic sequence (``sim`` settings of the config) into a cache
 folder once and runs on it. The default ``out`` is ``outputs/slam/<sequence folder name>-<8 hex digits of its
@@ -48,7 +48,7 @@ def _settings(cfg):
         slam_cfg = SlamConfig.from_dict(OmegaConf.to_container(cfg.runtime, resolve=True))
     except ValueError as e:
         raise UsageError(f"bad setting: {e}") from e
-    if not bool(cfg.get("dense", False)):
+    if not bool(cfg.get("dense", True)):
         return slam_cfg, None, None
     from runtime.dense import DenseConfig
     from runtime.network import DepthNetwork, ModelError, default_model_dir
@@ -145,7 +145,8 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"prior c=0 {dm['prior']['rmse']:.3f}, optimised code {dm['optimised']['rmse']:.3f}"
         )
     if dense:
-        lines.append(f"  wrote {out}/{{dense_map.ply, keyframe_depth/}} ({m.get('dense_map_points', 0)} points)")
+        dense_files = ", ".join(n for n in ("dense_map.ply", "dense_map.png", "keyframe_depth/") if (out / n).exists())
+        lines.append(f"  dense map: {m.get('dense_map_points', 0)} points; wrote {out}/{{{dense_files}}}")
     names = ("trajectory.txt", "keyframes.txt", "sparse_map.ply", "metrics.json", "trajectory_top.png", "slam.rrd")
     lines.append(f"  wrote {out}/{{{', '.join(n for n in names if (out / n).exists())}}}")
     return "\n".join(lines)

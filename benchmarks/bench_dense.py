@@ -40,6 +40,9 @@ MODES = {
     "sparse": None,
     "dense_eq13": {"use_depth_residual": True, "use_consistency": False},
     "dense_eq13_14": {"use_depth_residual": True, "use_consistency": True},
+    # the network with Eq. 14 only (not in the default run): Eq. 13 ties a landmark to the depth the network was
+    # given at that landmark's pixel, a prior on its earlier estimate
+    "dense_eq14": {"use_depth_residual": False, "use_consistency": True},
     # the upper bound: Eq. 13 + 14 with the rendered depth in place of the network's prior
     # (runtime.diagnostics.oracle_depth); what a perfect depth network would buy on the same sequences. Its rows
     # use the Laplace sigma sqrt(2) * oracle_b: the rendered depth has no correlated error field to inflate for.

@@ -45,6 +45,7 @@ SLAM_OUTPUTS = (
     "trajectory_top.png",
     "slam.rrd",
     "dense_map.ply",
+    "dense_map.png",
     "keyframe_depth",
 )
 

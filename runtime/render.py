@@ -155,7 +155,7 @@ def render_points(
             pix_all.append(pix)
             pt_all.append(np.nonzero(m)[0])
     index = np.full(H * W, -1, dtype=np.int64)
-    if pix_all:
+    if sum(x.size for x in pix_all):  # some point lands in the image
         pix = np.concatenate(pix_all)
         k = np.concatenate(pt_all)
         win = zi[k] == zbuf[pix]  # this point is the nearest at this pixel
@@ -216,8 +216,8 @@ def map_views(
     radius: int = 1,
 ) -> np.ndarray:
     """A picture of a map (``dense_map.png``): a top view and an oblique view side by side, each with the
-    trajectory drawn in red, from virtual cameras placed to frame the map's central 96 % (z is up, as in the SLAM
-    world frame).
+    trajectory drawn in red, from virtual cameras placed to frame the central 96 % of the map and trajectory
+    (z is up, as in the SLAM world frame).
 
     Args:
         xyz_w: (N, 3) map points; rgb: (N, 3) uint8 colours or None (grey).
@@ -232,8 +232,9 @@ def map_views(
     p = np.asarray(xyz_w, dtype=np.float64).reshape(-1, 3)
     traj = None if trajectory_w is None else np.asarray(trajectory_w, dtype=np.float64).reshape(-1, 3)
     W, H = int(size[0]), int(size[1])
-    pts = p if p.shape[0] else (traj if traj is not None and traj.shape[0] else np.zeros((1, 3)))
-    lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
+    boxes = [np.percentile(x, [2, 98], axis=0) for x in (p, traj) if x is not None and x.shape[0]]
+    boxes = boxes or [np.zeros((2, 3))]
+    lo, hi = np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)
     centre = 0.5 * (lo + hi)
     r = max(0.5 * float(np.linalg.norm((hi - lo)[:2])), 0.25)  # horizontal radius framed [m]
     views = []

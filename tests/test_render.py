@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from runtime.geometry import Camera, inv_T, make_T, so3_exp
-from runtime.render import align_se3, look_at, project_points, render_points
+from runtime.render import align_se3, look_at, map_views, project_points, render_points
 
 CAM = Camera(50.0, 50.0, 49.5, 39.5, 100, 80)  # pixel centres at integers; u = 49.5 + 50 x / z
 
@@ -112,3 +112,21 @@ def test_align_se3_recovers_a_known_rigid_transform():
     np.testing.assert_allclose(T, G, atol=2e-4)
     with pytest.raises(ValueError, match="within the ground truth"):
         align_se3(ts[:2], est[:2], ts, gt)
+
+
+def test_map_views_frame_the_map_and_draw_the_trajectory():
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-2, 2, (4000, 2)), np.zeros(4000)]  # a 4 m floor, green
+    rgb = np.tile([[20, 200, 20]], (4000, 1)).astype(np.uint8)
+    traj = np.c_[np.linspace(-1.5, 1.5, 50), np.zeros(50), np.full(50, 1.0)]  # a line 1 m above it
+    img = map_views(floor, rgb, traj, size=(160, 120))
+    assert img.shape == (120, 320, 3) and img.dtype == np.uint8
+    for view in (img[:, :160], img[:, 160:]):
+        green = (view[..., 1] == 200) & (view[..., 0] == 20)
+        red = (view[..., 0] > 150) & (view[..., 1] < 100)
+        assert 0.1 < green.mean() < 0.95  # the floor fills much of the view, not all of it
+        assert red.sum() > 30  # the trajectory is drawn
+    top = img[:, :160]
+    cols = np.nonzero(((top[..., 0] > 150) & (top[..., 1] < 100)).any(0))[0]
+    assert cols.max() - cols.min() > 40  # the trajectory runs along world x: across the top view
+    assert map_views(np.zeros((0, 3)), None, None, size=(40, 30)).shape == (30, 80, 3)  # empty map: blank views

@@ -53,11 +53,12 @@ def test_a_new_run_removes_the_earlier_runs_outputs_and_says_so(tiny_seq, tmp_pa
     out = tmp_path / "o"
     (out / "keyframe_depth").mkdir(parents=True)
     (out / "dense_map.ply").write_text("old dense map")
+    (out / "dense_map.png").write_text("old picture")
     (out / "notes.txt").write_text("not ours")
-    slam_main([f"sequence={tiny_seq}", f"out={out}", "progress=false"])
+    slam_main([f"sequence={tiny_seq}", f"out={out}", "progress=false", "dense=false"])  # a sparse run writes none
     text = capsys.readouterr().out
-    assert "removed the outputs of the earlier run" in text and "dense_map.ply, keyframe_depth" in text
-    assert not (out / "dense_map.ply").exists() and not (out / "keyframe_depth").exists()
+    assert "removed the outputs of the earlier run" in text and "dense_map.ply, dense_map.png, keyframe_depth" in text
+    assert not any((out / n).exists() for n in ("dense_map.ply", "dense_map.png", "keyframe_depth"))
     assert (out / "notes.txt").read_text() == "not ours"
     m = json.loads((out / "metrics.json").read_text())
     assert m["complete"] is True and m["run_id"] and m["frames_processed"] == m["frames"] == 80

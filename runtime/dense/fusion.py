@@ -9,8 +9,10 @@
 * each point has the weight ``1 / B^2`` of its predicted Laplace scale ``B`` [m] (``provider.uncertainty``,
   clamped below at ``min_uncertainty``), or 1 without uncertainty (ground truth, interpolated points);
 * per voxel of edge ``voxel`` [m] the map keeps the sums of weight, weighted position, weighted colour and
-  weighted normal, and the number of keyframes that saw it. Voxels are sorted int64 keys with parallel arrays
-  (memory: about 90 bytes per occupied voxel, whatever the number of keyframes).
+  weighted normal, and the number of keyframes that saw it. The sums are rows of arrays that grow by doubling;
+  a voxel's row is found by its int64 key in a sorted index, or among the newest rows (sorted per call), which
+  are merged into the index every :data:`TAIL_MAX` new voxels (about 90 bytes per occupied voxel, whatever the
+  number of keyframes; an integration costs O(pixels) plus the amortised merges).
 
 :meth:`VoxelMap.points` returns the weighted mean position, colour and unit normal of each voxel (seen by at
 least ``min_keyframes`` keyframes); :func:`write_fused_map` writes them as ``dense_map.ply`` (x y z, nx ny nz,
@@ -43,6 +45,8 @@ __all__ = ["depth_normals", "VoxelMap", "write_fused_map", "surface_metrics", "M
 MAX_NORMAL_JUMP = 0.1
 #: Voxel index range: keys pack three 21-bit indices (about +-20 km at 2 cm voxels).
 _OFF = 1 << 20
+#: New voxels looked up by sorting them per call before they are merged into the sorted index.
+TAIL_MAX = 1 << 15
 
 
 def depth_normals(depth: np.ndarray, camera: Camera, mask: np.ndarray | None = None) -> np.ndarray:
@@ -117,17 +121,21 @@ class VoxelMap:
             raise ValueError(f"min_uncertainty={min_uncertainty}: must be > 0")
         self.voxel = float(voxel)
         self.min_uncertainty = float(min_uncertainty)
-        self.keys = np.zeros(0, np.int64)  # sorted voxel keys
+        self._n = 0  # voxels (rows in use)
+        self.key = np.zeros(0, np.int64)  # voxel key of each row
         self.w = np.zeros(0)  # sum of weights
         self.wp = np.zeros((0, 3))  # sum of weight * position [m]
         self.wc = np.zeros((0, 3), np.float32)  # sum of weight * colour
         self.wn = np.zeros((0, 3), np.float32)  # sum of weight * unit normal
         self.n_kf = np.zeros(0, np.int32)  # keyframes that saw the voxel
+        self._skeys = np.zeros(0, np.int64)  # sorted index: keys ...
+        self._srows = np.zeros(0, np.int64)  # ... and their rows
+        self._n_indexed = 0  # rows below are in the sorted index, the others (the newest) are not
         self.keyframes: list[int] = []  # integrated keyframe ids, in order
         self._ids: set[int] = set()
 
     def __len__(self) -> int:
-        return int(self.keys.size)
+        return self._n
 
     def __contains__(self, kf_id: int) -> bool:
         return int(kf_id) in self._ids
@@ -204,40 +212,75 @@ class VoxelMap:
 
         sw = np.bincount(inv, weights=w, minlength=keys.size)
         swp, swc, swn = per_voxel(p * w[:, None]), per_voxel(rgb * w[:, None]), per_voxel(wn_pt)
-        pos = np.searchsorted(self.keys, keys)
-        found = pos < self.keys.size
-        found[found] = self.keys[pos[found]] == keys[found]
-        at = pos[found]  # unique: each key once
-        self.w[at] += sw[found]
-        self.wp[at] += swp[found]
-        self.wc[at] += swc[found].astype(np.float32)
-        self.wn[at] += swn[found].astype(np.float32)
-        self.n_kf[at] += 1
-        new = ~found
-        if new.any():
-            ins = pos[new]  # keys and pos are sorted: inserting before pos keeps self.keys sorted
-            self.keys = np.insert(self.keys, ins, keys[new])
-            self.w = np.insert(self.w, ins, sw[new])
-            self.wp = np.insert(self.wp, ins, swp[new], axis=0)
-            self.wc = np.insert(self.wc, ins, swc[new].astype(np.float32), axis=0)
-            self.wn = np.insert(self.wn, ins, swn[new].astype(np.float32), axis=0)
-            self.n_kf = np.insert(self.n_kf, ins, np.ones(int(new.sum()), np.int32))
+        rows = self._rows(keys)
+        self.w[rows] += sw  # rows are unique: plain fancy-index updates
+        self.wp[rows] += swp
+        self.wc[rows] += swc.astype(np.float32)
+        self.wn[rows] += swn.astype(np.float32)
+        self.n_kf[rows] += 1
+
+    def _rows(self, keys: np.ndarray) -> np.ndarray:
+        """Rows (M,) of unique voxel keys (M,); new voxels get new zero rows."""
+        rows = np.full(keys.size, -1, np.int64)
+        if self._skeys.size:
+            pos = np.minimum(np.searchsorted(self._skeys, keys), self._skeys.size - 1)
+            hit = self._skeys[pos] == keys
+            rows[hit] = self._srows[pos[hit]]
+        miss = np.flatnonzero(rows < 0)
+        t0 = self._n_indexed
+        if miss.size and self._n > t0:  # the newest voxels, not yet in the index
+            order = np.argsort(self.key[t0 : self._n])
+            tail = self.key[t0 : self._n][order]
+            pos = np.minimum(np.searchsorted(tail, keys[miss]), tail.size - 1)
+            hit = tail[pos] == keys[miss]
+            rows[miss[hit]] = t0 + order[pos[hit]]
+        new = np.flatnonzero(rows < 0)
+        if new.size:
+            start = self._n
+            self._reserve(start + new.size)
+            rows[new] = np.arange(start, start + new.size)
+            self.key[start : start + new.size] = keys[new]
+            self._n += int(new.size)
+            if self._n - self._n_indexed > TAIL_MAX:
+                self._merge_tail()
+        return rows
+
+    def _reserve(self, n: int) -> None:
+        """Capacity for ``n`` rows (doubling; new rows are zero)."""
+        cap = self.key.shape[0]
+        if n <= cap:
+            return
+        cap = max(n, 2 * cap, 1024)
+        for name in ("key", "w", "wp", "wc", "wn", "n_kf"):
+            old = getattr(self, name)
+            arr = np.zeros((cap, *old.shape[1:]), old.dtype)
+            arr[: self._n] = old[: self._n]
+            setattr(self, name, arr)
+
+    def _merge_tail(self) -> None:
+        tail = self.key[self._n_indexed : self._n]
+        order = np.argsort(tail)
+        pos = np.searchsorted(self._skeys, tail[order])
+        self._skeys = np.insert(self._skeys, pos, tail[order])
+        self._srows = np.insert(self._srows, pos, self._n_indexed + order)
+        self._n_indexed = self._n
 
     def points(self, min_keyframes: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The map: per voxel seen by at least ``min_keyframes`` keyframes, in key order.
+        """The map: per voxel seen by at least ``min_keyframes`` keyframes, in the order voxels were first seen.
 
         Returns:
             xyz (M, 3) weighted mean positions [m], rgb (M, 3) uint8 weighted mean colours, normals (M, 3) unit
             (zero where no observation had a normal), count (M,) keyframes that saw the voxel.
         """
-        keep = self.n_kf >= int(min_keyframes)
-        w = self.w[keep][:, None]
-        xyz = self.wp[keep] / w
-        rgb = np.clip(np.rint(self.wc[keep] / w), 0, 255).astype(np.uint8)
-        wn = self.wn[keep].astype(np.float64)
+        n = self._n
+        keep = self.n_kf[:n] >= int(min_keyframes)
+        w = self.w[:n][keep][:, None]
+        xyz = self.wp[:n][keep] / w
+        rgb = np.clip(np.rint(self.wc[:n][keep] / w), 0, 255).astype(np.uint8)
+        wn = self.wn[:n][keep].astype(np.float64)
         norm = np.linalg.norm(wn, axis=1, keepdims=True)
         nrm = np.where(norm > 0, wn / np.where(norm > 0, norm, 1.0), 0.0)
-        return xyz, rgb, nrm, self.n_kf[keep].copy()
+        return xyz, rgb, nrm, self.n_kf[:n][keep].copy()
 
 
 def write_fused_map(path: str | Path, vmap: VoxelMap, min_keyframes: int = 1) -> tuple[Path, int]:

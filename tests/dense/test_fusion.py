@@ -168,3 +168,22 @@ def test_surface_metrics_known_answers():
     m = surface_metrics(np.concatenate([plane, half[::2]]), plane, 0.05)
     assert m["accuracy"] == pytest.approx(len(plane) / (len(plane) + len(half[::2]))) and m["completeness"] == 1.0
     assert np.isnan(surface_metrics(np.zeros((0, 3)), plane)["accuracy"])
+
+
+def test_voxels_are_found_again_after_the_index_merges(monkeypatch):
+    import runtime.dense.fusion as fusion
+
+    monkeypatch.setattr(fusion, "TAIL_MAX", 50)  # merge the new voxels into the sorted index often
+    depth, T_w_c = _tilted_plane()
+    m = VoxelMap(0.02)
+    m.integrate(0, depth, T_w_c, CAM)
+    n = len(m)
+    assert n > 500 and m._n_indexed > 0  # merged
+    shifted = T_w_c.copy()
+    shifted[1, 3] += 0.3  # half new wall, half the same voxels
+    m.integrate(1, depth, shifted, CAM)
+    m.integrate(2, depth, T_w_c, CAM)
+    _, _, _, count = m.points()
+    keys = m.key[: len(m)]
+    assert np.unique(keys).size == len(m)  # no voxel twice
+    assert count[:n].min() >= 2 and count.max() == 3 and len(m) > n

@@ -16,7 +16,7 @@
 
 :meth:`VoxelMap.points` returns the weighted mean position, colour and unit normal of each voxel (seen by at
 least ``min_keyframes`` keyframes); :func:`write_fused_map` writes them as ``dense_map.ply`` (x y z, nx ny nz,
-red green blue), atomically. A keyframe id is integrated once: a second call with the same id is refused.
+red green blue, and ``keyframes``: how many keyframes saw the voxel, ushort, to filter by support), atomically. A keyframe id is integrated once: a second call with the same id is refused.
 
 In ``dit-slam dense=true`` (:class:`runtime.dense.mapper.DenseMapper`) every keyframe is integrated when it
 leaves the window (final code, final pose) and those still in it at the end, so the map covers the run.
@@ -284,13 +284,15 @@ class VoxelMap:
 
 
 def write_fused_map(path: str | Path, vmap: VoxelMap, min_keyframes: int = 1) -> tuple[Path, int]:
-    """Write ``vmap`` as PLY with normals and colours (``dense_map.ply`` when ``path`` is a folder), atomically
+    """Write ``vmap`` as PLY with normals, colours and keyframe counts (``dense_map.ply`` when ``path`` is a
+    folder), atomically
     (:func:`runtime.outputs.atomic_write`); returns the path and the number of points."""
     path = Path(path)
     if path.suffix.lower() != ".ply":
         path = path / "dense_map.ply"
-    xyz, rgb, nrm, _ = vmap.points(min_keyframes)
-    return atomic_write(path, lambda tmp: write_ply(tmp, xyz, rgb, normals=nrm)), int(xyz.shape[0])
+    xyz, rgb, nrm, count = vmap.points(min_keyframes)
+    support = {"keyframes": np.minimum(count, np.iinfo(np.uint16).max).astype(np.uint16)}
+    return atomic_write(path, lambda tmp: write_ply(tmp, xyz, rgb, nrm, support)), int(xyz.shape[0])
 
 
 def surface_metrics(

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PlyFormatError", "write_ply", "read_ply", "read_ply_normals"]
+__all__ = ["PlyFormatError", "write_ply", "read_ply", "read_ply_normals", "read_ply_vertex"]
 
 # PLY scalar types -> numpy (both the classic and the sized names)
 _TYPES = {
@@ -32,6 +32,8 @@ _TYPES = {
     "double": "f8",
     "float64": "f8",
 }
+#: numpy type codes -> PLY types of the extra scalars the writer takes
+_SCALAR_TYPES = {"u1": "uchar", "u2": "ushort", "i4": "int", "f4": "float"}
 _RGB_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
 
 
@@ -40,7 +42,11 @@ class PlyFormatError(ValueError):
 
 
 def write_ply(
-    path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None, normals: np.ndarray | None = None
+    path: str | Path,
+    xyz: np.ndarray,
+    rgb: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    scalars: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Write a point cloud as binary little-endian PLY.
 
@@ -49,6 +55,8 @@ def write_ply(
         xyz: (N, 3) points [m] (any frame; stored as float32), all finite.
         rgb: optional (N, 3) uint8 colours.
         normals: optional (N, 3) normals (``nx ny nz``, float32), all finite (zero = none).
+        scalars: optional further per-vertex properties, name -> (N,) array of uint8, uint16, int32 or float32
+            (written after the colours; :func:`read_ply_vertex` reads them).
 
     Returns:
         The path written.
@@ -82,18 +90,26 @@ def write_ply(
         if rgb.dtype != np.uint8:
             raise ValueError(f"rgb must be uint8, got dtype {rgb.dtype}")
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    scalars = {k: np.asarray(v) for k, v in (scalars or {}).items()}
+    for k, v in scalars.items():
+        if v.shape != (len(xyz),) or v.dtype.str.lstrip("<|") not in _SCALAR_TYPES:
+            raise ValueError(f"scalar {k!r} must be ({len(xyz)},) of {sorted(_SCALAR_TYPES)}, got {v.dtype} {v.shape}")
+        fields.append((k, "<" + v.dtype.str.lstrip("<|")))
     arr = np.empty(len(xyz), dtype=fields)
     arr["x"], arr["y"], arr["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     if normals is not None:
         arr["nx"], arr["ny"], arr["nz"] = normals[:, 0], normals[:, 1], normals[:, 2]
     if rgb is not None:
         arr["red"], arr["green"], arr["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    for k, v in scalars.items():
+        arr[k] = v
     header = ["ply", "format binary_little_endian 1.0", "comment written by dit-slam runtime.io.ply"]
     header += [f"element vertex {len(xyz)}", "property float x", "property float y", "property float z"]
     if normals is not None:
         header += ["property float nx", "property float ny", "property float nz"]
     if rgb is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header += [f"property {_SCALAR_TYPES[v.dtype.str.lstrip('<|')]} {k}" for k, v in scalars.items()]
     header.append("end_header")
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:
@@ -141,6 +157,15 @@ def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list]]]:
     if fmt is None:
         raise PlyFormatError(f"{path}: header has no 'format' line")
     return fmt, elements
+
+
+def read_ply_vertex(path: str | Path) -> dict[str, np.ndarray]:
+    """Every vertex property of a PLY file: name -> (N,) array in the file's type.
+
+    Raises:
+        PlyFormatError: as :func:`read_ply`.
+    """
+    return _read_vertices(Path(path))[0]
 
 
 def _read_vertices(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:

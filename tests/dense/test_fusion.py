@@ -9,7 +9,7 @@ from runtime.dense.config import DenseMapConfig
 from runtime.dense.fusion import VoxelMap, depth_normals, surface_metrics, write_fused_map
 from runtime.dense.mapper import _KfDense, _Stats
 from runtime.geometry import Camera
-from runtime.io.ply import read_ply, read_ply_normals
+from runtime.io.ply import read_ply, read_ply_normals, read_ply_vertex
 from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
 
 H, W = 48, 64
@@ -139,14 +139,17 @@ def test_ply_round_trip_with_normals(tmp_path):
     depth, T_w_c = _tilted_plane()
     m = VoxelMap(0.02)
     m.integrate(0, depth, T_w_c, CAM, image=np.full((H, W, 3), (10, 20, 30), np.uint8))
+    m.integrate(1, depth[:, : W // 2], T_w_c, Camera(*K, W // 2, H))  # the left half seen twice
     path, n = write_fused_map(tmp_path, m)
-    xyz, rgb, nrm, _ = m.points()
+    xyz, rgb, nrm, count = m.points()
     assert path.name == "dense_map.ply" and n == len(xyz)
     got, got_rgb = read_ply(path)
     got_n = read_ply_normals(path)
     np.testing.assert_array_equal(got, xyz.astype(np.float32))
     np.testing.assert_array_equal(got_n, nrm.astype(np.float32))
-    assert (got_rgb == (10, 20, 30)).all()
+    np.testing.assert_array_equal(read_ply_vertex(path)["keyframes"], count)
+    assert set(count.tolist()) == {1, 2}
+    assert (got_rgb[count == 1] == (10, 20, 30)).all()  # the second keyframe is grey (128)
     header = path.read_bytes().split(b"end_header")[0].decode()
     assert "property float nx" in header and "property uchar red" in header
 

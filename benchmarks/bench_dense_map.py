@@ -32,6 +32,7 @@ Usage::
 
     python benchmarks/bench_dense_map.py --seq ../shared/data/rgbd_real/sun3d_fragment1
     python benchmarks/bench_dense_map.py --seq SEQ_WITH_DEPTH0 --slam-out OUT   # OUT of dit-slam dense=true
+    python benchmarks/bench_dense_map.py --seq SEQ1 SEQ2 REAL_DIR --slam-out OUT1 OUT2   # outputs in --seq order
 
 Prints a table per sequence and writes ``--out`` (default ``benchmarks/results/dense_map.json``).
 """
@@ -212,7 +213,9 @@ def eval_real(folder: Path, args) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seq", nargs="+", required=True, help="rgbd_real frame folders and/or EuRoC sequences")
-    ap.add_argument("--slam-out", default=None, help="dit-slam dense=true output of the (one) EuRoC --seq")
+    ap.add_argument(
+        "--slam-out", nargs="+", default=[], help="dit-slam dense=true output folders of the EuRoC --seq, in order"
+    )
     ap.add_argument("--model", default=None, help="exported model folder (default: the shipped model)")
     ap.add_argument("--frames", type=int, default=None, help="first N frames of a real folder (default: all)")
     ap.add_argument("--threshold", type=float, default=0.05, help="distance of accuracy / completeness [m]")
@@ -220,12 +223,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "dense_map.json"))
     args = ap.parse_args(argv)
     results = {}
+    slam_outs = list(args.slam_out)
     for s in args.seq:
         p = Path(s).expanduser()
         if (p / "mav0").is_dir():
-            if args.slam_out is None:
-                raise SystemExit(f"{p}: a EuRoC sequence needs --slam-out (a dit-slam dense=true output folder)")
-            res = eval_synthetic(p, Path(args.slam_out), args)
+            if not slam_outs:
+                raise SystemExit(f"{p}: each EuRoC sequence needs its --slam-out (a dit-slam dense=true output)")
+            res = eval_synthetic(p, Path(slam_outs.pop(0)), args)
         elif p.is_dir():
             res = eval_real(p, args)
         else:

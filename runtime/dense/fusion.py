@@ -16,7 +16,12 @@
 
 :meth:`VoxelMap.points` returns the weighted mean position, colour and unit normal of each voxel (seen by at
 least ``min_keyframes`` keyframes); :func:`write_fused_map` writes them as ``dense_map.ply`` (x y z, nx ny nz,
-red green blue, and ``keyframes``: how many keyframes saw the voxel, ushort, to filter by support), atomically. A keyframe id is integrated once: a second call with the same id is refused.
+red green blue, and ``keyframes``: how many keyframes saw the voxel, ushort, to filter by support), atomically.
+A keyframe id is integrated once: a second call with the same id is refused.
+
+Measured (``benchmarks/bench_dense_map.py``, ``benchmarks/results/dense_map.json``): fed the true depth, the
+fusion is within 5 cm of the ground truth for 96-100 % of its points; fed the network's depth, the map's
+accuracy is that of the network (its points lie as far from the surface as its depth errors).
 
 In ``dit-slam dense=true`` (:class:`runtime.dense.mapper.DenseMapper`) every keyframe is integrated when it
 leaves the window (final code, final pose) and those still in it at the end, so the map covers the run.
@@ -38,13 +43,15 @@ from runtime.geometry import Camera
 from runtime.io.ply import write_ply
 from runtime.outputs import atomic_write
 
-__all__ = ["depth_normals", "VoxelMap", "write_fused_map", "surface_metrics", "MAX_NORMAL_JUMP"]
+__all__ = ["depth_normals", "VoxelMap", "write_fused_map", "surface_metrics", "MAX_NORMAL_JUMP", "FINEST_VOXEL"]
 
 #: Largest relative depth step ``|z_neighbour - z| / z`` between a pixel and its four neighbours for which the
 #: pixel gets a normal (a larger one is an occlusion edge, not a surface).
 MAX_NORMAL_JUMP = 0.1
 #: Voxel index range: keys pack three 21-bit indices (about +-20 km at 2 cm voxels).
 _OFF = 1 << 20
+#: Voxel edge [m] of the fused map when ``DenseMapConfig.voxel`` is 0.
+FINEST_VOXEL = 0.01
 #: New voxels looked up by sorting them per call before they are merged into the sorted index.
 TAIL_MAX = 1 << 15
 
@@ -133,6 +140,11 @@ class VoxelMap:
         self._n_indexed = 0  # rows below are in the sorted index, the others (the newest) are not
         self.keyframes: list[int] = []  # integrated keyframe ids, in order
         self._ids: set[int] = set()
+
+    @classmethod
+    def from_config(cls, cfg: DenseMapConfig) -> VoxelMap:
+        """The map of ``cfg.voxel`` (:data:`FINEST_VOXEL` when it is 0, i.e. no downsampling)."""
+        return cls(cfg.voxel or FINEST_VOXEL)
 
     def __len__(self) -> int:
         return self._n
@@ -283,16 +295,17 @@ class VoxelMap:
         return xyz, rgb, nrm, self.n_kf[:n][keep].copy()
 
 
-def write_fused_map(path: str | Path, vmap: VoxelMap, min_keyframes: int = 1) -> tuple[Path, int]:
-    """Write ``vmap`` as PLY with normals, colours and keyframe counts (``dense_map.ply`` when ``path`` is a
-    folder), atomically
-    (:func:`runtime.outputs.atomic_write`); returns the path and the number of points."""
+def write_fused_map(
+    path: str | Path, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray, count: np.ndarray
+) -> Path:
+    """Write a fused map (the arrays of :meth:`VoxelMap.points`) as PLY with normals, colours and keyframe counts
+    (property ``keyframes``, ushort; ``dense_map.ply`` when ``path`` is a folder), atomically
+    (:func:`runtime.outputs.atomic_write`); returns the path."""
     path = Path(path)
     if path.suffix.lower() != ".ply":
         path = path / "dense_map.ply"
-    xyz, rgb, nrm, count = vmap.points(min_keyframes)
     support = {"keyframes": np.minimum(count, np.iinfo(np.uint16).max).astype(np.uint16)}
-    return atomic_write(path, lambda tmp: write_ply(tmp, xyz, rgb, nrm, support)), int(xyz.shape[0])
+    return atomic_write(path, lambda tmp: write_ply(tmp, xyz, rgb, normals, support))
 
 
 def surface_metrics(

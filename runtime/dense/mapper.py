@@ -291,7 +291,7 @@ class DenseMapper:
         self._evaluate(backend, d)
         if not d.fused:
             if getattr(self, "fused_map", None) is None:  # created on first use
-                self.fused_map = VoxelMap(self.cfg.map.voxel or 0.01)
+                self.fused_map = VoxelMap.from_config(self.cfg.map)
             T_w_c = np.asarray(backend.keyframe(kf_id).T_w_b, np.float64) @ self.T_b_c
             self.fused_map.integrate(
                 kf_id, self.final_depth(d), T_w_c, self.net_cam, d.provider.uncertainty, d.image, self.cfg.map
@@ -329,7 +329,7 @@ class DenseMapper:
         for k in active:
             self._evaluate(backend, self.kfs[k])
         if getattr(self, "fused_map", None) is None:
-            self.fused_map = VoxelMap(self.cfg.map.voxel or 0.01)
+            self.fused_map = VoxelMap.from_config(self.cfg.map)
         depths, uncs = [], []
         for k in active:
             d = self.kfs[k]
@@ -342,10 +342,10 @@ class DenseMapper:
         if self.cfg.save_maps and active:
             maps = [(f"kf{k:05d}", depth, unc) for k, depth, unc in zip(active, depths, uncs, strict=True)]
             write_keyframe_maps(out / "keyframe_depth", maps)
-        _, n_points = write_fused_map(out / "dense_map.ply", self.fused_map)
-        xyz, rgb, _, _ = self.fused_map.points()
+        xyz, rgb, nrm, count = self.fused_map.points()
+        write_fused_map(out / "dense_map.ply", xyz, rgb, nrm, count)
         self.dense_map = (xyz, rgb)  # for the Rerun recording
-        res = self._metrics(len(active), n_points)
+        res = self._metrics(len(active), int(xyz.shape[0]))
         res["dense_map_keyframes"] = len(self.fused_map.keyframes)
         return res
 

@@ -67,7 +67,7 @@ def test_synthetic_map_is_aligned_like_the_ate(seq, tmp_path):
         i = int(np.searchsorted(s.frame_ts, ts[j]))
         g = gt_depth_to_network(s.depth(i), s.camera, mapping)
         m.integrate(int(j), g, T_est[j] @ s.T_b_c, net_cam)
-    write_fused_map(out, m)
+    write_fused_map(out, *m.points())
     res = bench_dense_map.main(["--seq", str(seq), "--slam-out", str(out), "--out", str(tmp_path / "r.json")])
     r = res["sequences"][seq.name]
     assert r["ate_se3_rmse_m"] < 1e-6

@@ -62,7 +62,7 @@ class DepthFactorConfig:
 
 @dataclass(frozen=True)
 class DenseMapConfig:
-    """Settings of the local dense map (:mod:`runtime.dense.map`).
+    """Settings of the dense map (:mod:`runtime.dense.map`, :mod:`runtime.dense.fusion`).
 
     A pixel is kept when its Laplace scale ``B`` is at most ``max_uncertainty`` [m] and ``B / depth`` at most
     ``max_rel_uncertainty`` (either may be None), and ``min_depth <= depth <= max_depth``.
@@ -72,7 +72,8 @@ class DenseMapConfig:
         max_rel_uncertainty: largest ``B / depth`` kept (None: no relative limit).
         min_depth, max_depth: depth range kept [m].
         stride: back-project every ``stride``-th pixel in u and v (1: all).
-        voxel: voxel edge [m] of the downsampling (0: none).
+        voxel: voxel edge [m] of the downsampling (0: none) and of the fused map
+            (:class:`runtime.dense.fusion.VoxelMap`; 0 there: 1 cm).
     """
 
     max_uncertainty: float | None = None

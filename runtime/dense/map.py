@@ -1,9 +1,10 @@
 """Local dense map (Sec. 5.3, Fig. 1 and 12) and depth evaluation (Table 2).
 
-* :func:`fuse_depth_maps`: the window's keyframes' decoded depths, filtered by the predicted uncertainty,
+* :func:`fuse_depth_maps`: a set of keyframes' decoded depths, filtered by the predicted uncertainty,
   back-projected at network resolution with the network camera (``NetworkMapping.camera(cam.pinhole())``),
-  moved to the world with ``T_w_b T_b_c`` and voxel-downsampled; :func:`write_dense_map` writes
-  ``dense_map.ply``.
+  moved to the world with ``T_w_b T_b_c`` and voxel-downsampled (plain means, no normals); :func:`write_dense_map`
+  writes such a cloud as PLY. ``dit-slam``'s ``dense_map.ply`` is the fused map of the whole run instead
+  (:class:`runtime.dense.fusion.VoxelMap`: 1 / B^2 weights, normals, every keyframe integrated once).
 * :func:`save_keyframe_maps`: per-keyframe depth and uncertainty maps (``.npz`` float32 and 16-bit PNGs in
   the depth0 convention, value = metres * 5000); :func:`write_keyframe_maps` writes the ``keyframe_depth/``
   folder of them. Both outputs are written atomically (temporary name, then rename).

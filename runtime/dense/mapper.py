@@ -20,8 +20,10 @@
   other code keyframe on the Sec. 5.2 samples (``n_consis`` per keyframe). Factors are rebuilt at every
   optimisation (their noise models are evaluated at the current estimate), and each code keyframe's decoder
   is relinearised then (:class:`runtime.dense.linearized.LinearizedDepth`).
-* **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the window's keyframes' decoded depths,
-  uncertainty-filtered and fused, :func:`runtime.dense.map.fuse_depth_maps`), per-keyframe depth and
+* **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the run's fused map,
+  :class:`runtime.dense.fusion.VoxelMap`: every keyframe's decoded depth, uncertainty-filtered and weighted by
+  ``1 / B^2``, integrated once when it leaves the window with its final code and pose, and at the end for the
+  keyframes still in the window; points with normals and colours), per-keyframe depth and
   uncertainty maps in ``keyframe_depth/``, and with ground-truth depth (``mav0/depth0``) the Table 2 metrics
   of (a) the sparse map points, (b) the prior at c = 0, (c) the optimised code, on every keyframe that held a
   code, each evaluated when the keyframe left the window (or at the end).
@@ -44,14 +46,13 @@ import numpy as np
 
 from runtime.dense.config import DenseConfig
 from runtime.dense.factors import make_consistency_factor, make_geometric_depth_factors
+from runtime.dense.fusion import VoxelMap, write_fused_map
 from runtime.dense.linearized import ApproxErrorProbe, LinearizedDepth
 from runtime.dense.map import (
     depth_metrics,
-    fuse_depth_maps,
     gt_depth_to_network,
     mean_metrics,
     sparse_depth_image,
-    write_dense_map,
     write_keyframe_maps,
 )
 from runtime.dense.sampling import sample_consistency_pixels
@@ -86,6 +87,7 @@ class _KfDense:
     code: np.ndarray  # (C,) current code
     had_code: bool = False
     evaluated: bool = False
+    fused: bool = False  # integrated into the fused map
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
 
@@ -151,6 +153,7 @@ class DenseMapper:
         self.armed_for: int | None = None  # the backend's init_kf_id that t_first_ns belongs to
         self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
         self._pool: ThreadPoolExecutor | None = None  # the background network pass (DenseConfig.background)
+        self.fused_map = VoxelMap.from_config(self.cfg.map)  # the run's dense map (network thread only)
 
     # ------------------------------------------------------------------ keyframes
     def on_keyframe(self, backend, kf_id: int, frame_idx: int, image: np.ndarray, feat_uv_u: np.ndarray) -> None:
@@ -348,12 +351,30 @@ class DenseMapper:
         self.timers["dense_network"] += time.perf_counter() - t0
 
     def on_marginalize(self, backend, kf_id: int) -> None:
-        """A keyframe leaves the window: evaluate its depth (final code), free its network state."""
+        """A keyframe leaves the window: evaluate its depth and fuse it into the map (final code and pose), free
+        its network state."""
         d = self.kfs.get(kf_id)
         if d is None:
             return
         self._evaluate(backend, d)
+        self._fuse(backend, d)
         del self.kfs[kf_id]
+
+    def _fuse(self, backend, d: _KfDense) -> None:
+        """Integrate keyframe ``d`` into the fused map with its current code and pose, on the network thread (the
+        map is only ever touched there)."""
+        if d.fused:
+            return
+        d.fused = True
+        T_w_c = np.asarray(backend.keyframe(d.kf_id).T_w_b, np.float64) @ self.T_b_c
+
+        def integrate(provider: LinearizedDepth, code: np.ndarray) -> None:
+            t0 = time.perf_counter()
+            depth = np.asarray(provider.exact(code), np.float64)
+            self.fused_map.integrate(d.kf_id, depth, T_w_c, self.net_cam, provider.uncertainty, d.image, self.cfg.map)
+            self.timers["dense_fusion"] += time.perf_counter() - t0
+
+        self._submit(integrate, d.provider, d.code.copy())
 
     # ------------------------------------------------------------------ evaluation and outputs
     def final_depth(self, d: _KfDense) -> np.ndarray:
@@ -380,27 +401,28 @@ class DenseMapper:
         }
 
     def finish(self, backend, out_dir: str | Path) -> dict:
-        """Write ``dense_map.ply`` and the per-keyframe maps (``keyframe_depth/``), each atomically; return the
-        dense metrics for ``metrics.json``."""
+        """Fuse the keyframes still in the window into the map; write ``dense_map.ply`` (the fused map of the
+        run) and the per-keyframe maps (``keyframe_depth/``, the window's), each atomically; return the dense
+        metrics for ``metrics.json``."""
         out = Path(out_dir)
         active = [k for k in backend.window_ids() if k in self.kfs]
         for k in active:
             self._evaluate(backend, self.kfs[k])
-        depths, poses, uncs, imgs = [], [], [], []
+        depths, uncs = [], []
         for k in active:
             d = self.kfs[k]
             depths.append(self.final_depth(d))
-            poses.append(backend.keyframe(k).T_w_b)
             uncs.append(d.provider.uncertainty)
-            imgs.append(d.image)
+            self._fuse(backend, d)
+        self.close()  # every pass done: the fused map and the depth metrics are complete
         if self.cfg.save_maps and active:
             maps = [(f"kf{k:05d}", depth, unc) for k, depth, unc in zip(active, depths, uncs, strict=True)]
             write_keyframe_maps(out / "keyframe_depth", maps)
-        xyz, rgb = fuse_depth_maps(depths, poses, self.net_cam, self.T_b_c, uncs, imgs, self.cfg.map)
-        write_dense_map(out / "dense_map.ply", xyz, rgb)
+        xyz, rgb, nrm, count = self.fused_map.points()
+        write_fused_map(out / "dense_map.ply", xyz, rgb, nrm, count)
         self.dense_map = (xyz, rgb)  # for the Rerun recording
         res = self._metrics(len(active), int(xyz.shape[0]))
-        self.close()
+        res["dense_map_keyframes"] = len(self.fused_map.keyframes)
         return res
 
     def close(self) -> None:

@@ -1,6 +1,6 @@
-"""PLY point clouds: binary little-endian writer (float32 x, y, z + optional uchar red, green, blue) and a
-reader for ``ascii``, ``binary_little_endian`` and ``binary_big_endian`` vertex data (MeshLab, CloudCompare,
-Open3D).
+"""PLY point clouds: binary little-endian writer (float32 x, y, z + optional float32 nx, ny, nz normals +
+optional uchar red, green, blue) and a reader for ``ascii``, ``binary_little_endian`` and ``binary_big_endian``
+vertex data (MeshLab, CloudCompare, Open3D); :func:`read_ply_normals` reads the normals.
 
 Other elements (e.g. ``face``) after ``vertex`` are ignored; fixed-size elements before it are skipped.
 """
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PlyFormatError", "write_ply", "read_ply"]
+__all__ = ["PlyFormatError", "write_ply", "read_ply", "read_ply_normals", "read_ply_vertex"]
 
 # PLY scalar types -> numpy (both the classic and the sized names)
 _TYPES = {
@@ -32,6 +32,8 @@ _TYPES = {
     "double": "f8",
     "float64": "f8",
 }
+#: numpy type codes -> PLY types of the extra scalars the writer takes
+_SCALAR_TYPES = {"u1": "uchar", "u2": "ushort", "i4": "int", "f4": "float"}
 _RGB_NAMES = (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue"))
 
 
@@ -39,13 +41,22 @@ class PlyFormatError(ValueError):
     """A PLY file is malformed or unsupported; the message names the file."""
 
 
-def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
+def write_ply(
+    path: str | Path,
+    xyz: np.ndarray,
+    rgb: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    scalars: dict[str, np.ndarray] | None = None,
+) -> Path:
     """Write a point cloud as binary little-endian PLY.
 
     Args:
         path: output file (parent folders are created).
         xyz: (N, 3) points [m] (any frame; stored as float32), all finite.
         rgb: optional (N, 3) uint8 colours.
+        normals: optional (N, 3) normals (``nx ny nz``, float32), all finite (zero = none).
+        scalars: optional further per-vertex properties, name -> (N,) array of uint8, uint16, int32 or float32
+            (written after the colours; :func:`read_ply_vertex` reads them).
 
     Returns:
         The path written.
@@ -65,6 +76,13 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) 
             f"xyz has {int((~finite).sum())} non-finite points (first at index {np.argmin(finite)})"
         )
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        normals = np.asarray(normals)
+        if normals.shape != xyz.shape:
+            raise ValueError(f"normals must have shape {xyz.shape} like xyz, got {normals.shape}")
+        if not np.isfinite(normals).all():
+            raise ValueError(f"normals has {int((~np.isfinite(normals).all(axis=1)).sum())} non-finite rows")
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     if rgb is not None:
         rgb = np.asarray(rgb)
         if rgb.shape != xyz.shape:
@@ -72,14 +90,26 @@ def write_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) 
         if rgb.dtype != np.uint8:
             raise ValueError(f"rgb must be uint8, got dtype {rgb.dtype}")
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    scalars = {k: np.asarray(v) for k, v in (scalars or {}).items()}
+    for k, v in scalars.items():
+        if v.shape != (len(xyz),) or v.dtype.str.lstrip("<|") not in _SCALAR_TYPES:
+            raise ValueError(f"scalar {k!r} must be ({len(xyz)},) of {sorted(_SCALAR_TYPES)}, got {v.dtype} {v.shape}")
+        fields.append((k, "<" + v.dtype.str.lstrip("<|")))
     arr = np.empty(len(xyz), dtype=fields)
     arr["x"], arr["y"], arr["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    if normals is not None:
+        arr["nx"], arr["ny"], arr["nz"] = normals[:, 0], normals[:, 1], normals[:, 2]
     if rgb is not None:
         arr["red"], arr["green"], arr["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    for k, v in scalars.items():
+        arr[k] = v
     header = ["ply", "format binary_little_endian 1.0", "comment written by dit-slam runtime.io.ply"]
     header += [f"element vertex {len(xyz)}", "property float x", "property float y", "property float z"]
+    if normals is not None:
+        header += ["property float nx", "property float ny", "property float nz"]
     if rgb is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
+    header += [f"property {_SCALAR_TYPES[v.dtype.str.lstrip('<|')]} {k}" for k, v in scalars.items()]
     header.append("end_header")
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:
@@ -129,18 +159,17 @@ def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list]]]:
     return fmt, elements
 
 
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read the vertices of a PLY file.
-
-    Args:
-        path: ``.ply`` file (ascii or binary, either endianness).
-
-    Returns:
-        xyz (N, 3) float64 [file units], rgb (N, 3) uint8 or None when the vertices have no colour.
+def read_ply_vertex(path: str | Path) -> dict[str, np.ndarray]:
+    """Every vertex property of a PLY file: name -> (N,) array in the file's type.
 
     Raises:
-        PlyFormatError: missing file, malformed header, no vertex element or x/y/z, truncated data.
+        PlyFormatError: as :func:`read_ply`.
     """
+    return _read_vertices(Path(path))[0]
+
+
+def _read_vertices(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The vertex columns of a PLY file (name -> (N,) array) and their numpy type codes."""
     path = Path(path)
     if not path.is_file():
         raise PlyFormatError(f"{path}: missing file")
@@ -188,6 +217,22 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             arr = np.frombuffer(buf, dtype=dtype, count=n)
             cols = {p: arr[p] for p in pnames}
             types = dict(props)
+    return cols, types
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read the vertices of a PLY file.
+
+    Args:
+        path: ``.ply`` file (ascii or binary, either endianness).
+
+    Returns:
+        xyz (N, 3) float64 [file units], rgb (N, 3) uint8 or None when the vertices have no colour.
+
+    Raises:
+        PlyFormatError: missing file, malformed header, no vertex element or x/y/z, truncated data.
+    """
+    cols, types = _read_vertices(Path(path))
     xyz = np.stack([cols["x"], cols["y"], cols["z"]], -1).astype(np.float64)
     rgb = None
     for trio in _RGB_NAMES:
@@ -199,3 +244,15 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
             rgb = np.clip(np.rint(c), 0, 255).astype(np.uint8)
             break
     return xyz, rgb
+
+
+def read_ply_normals(path: str | Path) -> np.ndarray | None:
+    """The vertex normals (N, 3) float64 (``nx ny nz``) of a PLY file, or None when it has none.
+
+    Raises:
+        PlyFormatError: as :func:`read_ply`.
+    """
+    cols, _ = _read_vertices(Path(path))
+    if not all(c in cols for c in ("nx", "ny", "nz")):
+        return None
+    return np.stack([cols["nx"], cols["ny"], cols["nz"]], -1).astype(np.float64)

@@ -117,3 +117,25 @@ def test_bad_files_name_the_file(tmp_path, content, fragment):
 def test_missing_file(tmp_path):
     with pytest.raises(PlyFormatError, match="missing file"):
         read_ply(tmp_path / "none.ply")
+
+
+def test_round_trip_normals_and_scalars(tmp_path):
+    from runtime.io import read_ply_normals, read_ply_vertex
+
+    xyz, rgb = _cloud(50)
+    nrm = xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+    count = np.arange(50, dtype=np.uint16)
+    p = write_ply(tmp_path / "n.ply", xyz, rgb, normals=nrm, scalars={"keyframes": count})
+    got, got_rgb = read_ply(p)
+    np.testing.assert_array_equal(got, xyz.astype(np.float32))
+    np.testing.assert_array_equal(got_rgb, rgb)
+    np.testing.assert_array_equal(read_ply_normals(p), nrm.astype(np.float32))
+    v = read_ply_vertex(p)
+    assert v["keyframes"].dtype == np.uint16 and (v["keyframes"] == count).all()
+    assert read_ply_normals(write_ply(tmp_path / "plain.ply", xyz)) is None
+    with pytest.raises(ValueError, match="scalar 'k' must be"):
+        write_ply(tmp_path / "bad.ply", xyz, scalars={"k": np.zeros(50, np.float64)})
+    with pytest.raises(ValueError, match="normals has 1 non-finite rows"):
+        bad = nrm.copy()
+        bad[3, 0] = np.nan
+        write_ply(tmp_path / "bad.ply", xyz, normals=bad)

@@ -8,11 +8,15 @@ upper bound of what a better network could buy: ``dense_gt_eq13_14``).
     python benchmarks/bench_dense.py --scale 0.5 --set n_consis=200   # half-resolution images
     python benchmarks/bench_dense.py --presets whitewall --slam-set backend.window_size=8   # a runtime key
     python benchmarks/bench_dense.py --modes dense_eq13_14 --model outputs/export/my_model   # another network
+    python benchmarks/bench_dense.py --presets --sequences data/mh05_s0 data/mh05_s1 --modes sparse dense_eq14
+        # existing folders (e.g. `dit-sim imu` output of the MH_05 excerpt): a trailing _s<N> is the seed
 
 Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one process, runs one after another),
 and for the dense runs the depth metrics of Table 2 on the keyframes that held a code, against the rendered
 ground truth (``mav0/depth0``) at network resolution: (a) the sparse map points, (b) the network prior at
 c = 0, (c) the optimised code. The machine is shared and noisy: compare FPS as ratios within one invocation.
+The bars: per dense mode and sequence, the paired ATE difference against sparse over the seeds (mean and standard
+error; frames/s as the ratio of runs of one seed, which follow each other), frames/s >= 20, and (c) below (b).
 Prints one table (mean over seeds per preset and mode, plus per-run rows) and writes ``bench_dense.json``,
 after every run too (``"complete": false`` until the end): an interrupted invocation keeps its finished runs, and
 the same command with ``--resume`` runs only the missing ones.

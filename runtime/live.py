@@ -143,7 +143,8 @@ class LiveSlam:
         on_map: called after every new keyframe's optimisation with the map: ``(ids (N,), X_w (N, 3))`` of every
             point (the window's landmarks and the map points that left it).
         on_depth: with ``dense``, called after every new keyframe with ``(kf_id, depth)``: the newest keyframe's
-            dense depth (network resolution, metres) decoded from its current code.
+            dense depth (network resolution, metres) decoded from its current code (the call waits for the network
+            thread to reach it, so it costs tracking time).
 
     Timestamps are int64 ns on one clock for both sensors. Images are (H, W) uint8 grey as the camera gives them
     (``None``: a frame whose image could not be read; the system coasts on the IMU through it).

@@ -241,8 +241,8 @@ def paired(rows: list[dict], preset: str, mode: str, ref: str) -> dict:
     d = np.array([by[mode, s]["ate"] - by[ref, s]["ate"] for s in seeds])
     ratio = np.array([by[mode, s]["fps"] / by[ref, s]["fps"] for s in seeds])
     se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else float("nan")
-    return {
-        "seeds": seeds,
+    return {  # numbers only (notebook 03 formats every value but "met")
+        "n_seeds": len(seeds),
         "ate_diff_mean": float(d.mean()) if d.size else float("nan"),
         "ate_diff_se": se,
         "fps_ratio_mean": float(ratio.mean()) if ratio.size else float("nan"),

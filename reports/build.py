@@ -415,6 +415,7 @@ def _table3() -> list[str]:
             )
         spec = [
             ("presets", "--presets"),
+            ("sequences", "--sequences"),
             ("seeds", "--seeds"),
             ("duration", "--duration"),
             ("scale", "--scale"),
@@ -431,9 +432,15 @@ def _table3() -> list[str]:
             for k, v in d.get("bars", {}).items()
             if all(math.isfinite(x) for x in v.values() if isinstance(x, float))
         }
+        where = (
+            f"The sequence folders given ({len(a['sequences'])}, seed from the folder name; the note says what they "
+            "are)"
+            if a.get("sequences")
+            else f"Synthetic `sim/` sequences, {a.get('duration', '?'):g} s, seeds {a.get('seeds')}, scale "
+            f"{a.get('scale', 1.0):g}"
+        )
         out += [
-            f"Synthetic `sim/` sequences, {a.get('duration', '?'):g} s, seeds {a.get('seeds')}, scale "
-            f"{a.get('scale', 1.0):g}, {_dense_model(d)}; mean ± std over seeds (ATE: SE(3)-aligned RMSE; depth "
+            f"{where}, {_dense_model(d)}; mean ± std over seeds (ATE: SE(3)-aligned RMSE; depth "
             "RMSE on the keyframes that held a code: (a) sparse map points, (b) prior c = 0, (c) optimised code):",
             "",
             _table(
@@ -462,7 +469,13 @@ def _table3() -> list[str]:
             ),
             _source_block(
                 [f],
-                " ".join(["python benchmarks/bench_dense.py", *_flags(a, spec)]),
+                " ".join(
+                    [
+                        "python benchmarks/bench_dense.py",
+                        *(["--presets"] if a.get("presets") == [] else []),
+                        *_flags(a, spec),
+                    ]
+                ),
                 _machine(d.get("machine")),
                 note=d.get("note", ""),
             ),

@@ -91,18 +91,26 @@ def depth_edge_ratio(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     >>> depth_edge_ratio(D, np.array([[0.0, 1.0], [2.2, 1.0], [4.6, 2.0]])).tolist()
     [0.0, 1.0, 0.0]
     """
+    import cv2
+
     D = np.asarray(depth, dtype=np.float64)
     H, W = D.shape[:2]
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     u = np.clip(np.floor(np.nan_to_num(uv[:, 0]) + 0.5), 0, W - 1).astype(np.int64)
     v = np.clip(np.floor(np.nan_to_num(uv[:, 1]) + 0.5), 0, H - 1).astype(np.int64)
-    d = np.stack(
-        [D[np.clip(v + dy, 0, H - 1), np.clip(u + dx, 0, W - 1)] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], -1
-    )
-    lo = d.min(-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = (d.max(-1) - lo) / lo
-    return np.where(np.isfinite(d).all(-1) & (lo > 0), ratio, np.inf)
+    # 3x3 max and min over the whole map (the border replicated, as clamping the neighbours): a few cv2 passes
+    # cost less than nine gathers at the pixels; an invalid depth anywhere in the 3x3 gives inf
+    k = np.ones((3, 3), np.uint8)
+    valid = np.isfinite(D) & (D > 0)
+    if valid.all():  # the usual case: a decoded depth map
+        hi = cv2.dilate(D, k, borderType=cv2.BORDER_REPLICATE)[v, u]
+        lo = cv2.erode(D, k, borderType=cv2.BORDER_REPLICATE)[v, u]
+        return (hi - lo) / lo
+    Dv = np.where(valid, D, 1.0)
+    hi = cv2.dilate(Dv, k, borderType=cv2.BORDER_REPLICATE)[v, u]
+    lo = cv2.erode(Dv, k, borderType=cv2.BORDER_REPLICATE)[v, u]
+    near_bad = cv2.dilate((~valid).astype(np.uint8), k, borderType=cv2.BORDER_REPLICATE)[v, u] > 0
+    return np.where(near_bad, np.inf, (hi - lo) / lo)
 
 
 def off_depth_edges(depth: np.ndarray, uv: np.ndarray, edge_rel: float | None) -> np.ndarray:

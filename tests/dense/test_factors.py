@@ -312,6 +312,20 @@ def test_depth_edge_ratio_on_a_board():
     assert depth_edge_ratio(np.where(D > 2.5, 0.0, D), uv)[3] == np.inf  # an invalid depth nearby
 
 
+def test_depth_edge_ratio_is_the_3x3_range_over_its_minimum_at_the_nearest_pixel():
+    rng = np.random.default_rng(3)
+    D = rng.uniform(0.5, 5.0, (12, 9))
+    D[4, 4], D[7, 1], D[0, 8] = np.nan, 0.0, np.inf
+    uv = np.c_[rng.uniform(-3, 12, 400), rng.uniform(-3, 15, 400)]
+    u = np.clip(np.floor(uv[:, 0] + 0.5), 0, 8).astype(int)
+    v = np.clip(np.floor(uv[:, 1] + 0.5), 0, 11).astype(int)
+    want = []
+    for ui, vi in zip(u, v, strict=True):  # the 3x3 neighbourhood, clamped at the border
+        d = D[np.clip([vi - 1, vi, vi + 1], 0, 11)][:, np.clip([ui - 1, ui, ui + 1], 0, 8)]
+        want.append((d.max() - d.min()) / d.min() if np.isfinite(d).all() and d.min() > 0 else np.inf)
+    np.testing.assert_allclose(depth_edge_ratio(D, uv), want, rtol=1e-12)
+
+
 def test_geometric_rows_on_a_depth_edge_are_dropped():
     T = body_pose(t=(0.0, 0.0, 0.0))
     D = board_depth(T)

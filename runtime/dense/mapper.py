@@ -18,8 +18,9 @@
   "five most co-visible keyframes"), each with the CVAE prior ``N(0, I)`` (``PriorFactorVector``); Eq. 13
   factors per code keyframe (landmarks as variables); Eq. 14 factors from the newest code keyframe to every
   other code keyframe on the Sec. 5.2 samples (``n_consis`` per keyframe). Factors are rebuilt at every
-  optimisation (their noise models are evaluated at the current estimate), and each code keyframe's decoder
-  is relinearised then (:class:`runtime.dense.linearized.LinearizedDepth`).
+  optimisation (their noise models are evaluated at the current estimate). After an optimisation, a code
+  keyframe whose code moved more than ``DenseConfig.relin_tol`` has its decoder relinearised at the new code on
+  the network thread, for the next optimisation (:class:`runtime.dense.linearized.LinearizedDepth`).
 * **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the run's fused map,
   :class:`runtime.dense.fusion.VoxelMap`: every keyframe's decoded depth, uncertainty-filtered and weighted by
   ``1 / B^2``, integrated once when it leaves the window with its final code and pose, and at the end for the

@@ -367,10 +367,10 @@ class SlidingWindowBackend:
         params.setAbsoluteErrorTol(1e-6)
         stats = {"n_factors": int(graph.size()), "n_landmarks": len(proj_lm)}
         try:
-            err0 = graph.error(values)
             opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+            err0 = opt.error()  # LM evaluates the graph at the start and keeps the error of its current estimate
             result = opt.optimize()
-            err1 = graph.error(result)
+            err1 = opt.error()
             stats.update(iterations=int(opt.iterations()), error_before=float(err0), error_after=float(err1), ok=True)
         except RuntimeError as e:  # IndeterminantLinearSystem and the like: keep the previous estimate
             log.warning("backend: LM failed (%s); keeping the previous estimate", str(e).splitlines()[0][:200])

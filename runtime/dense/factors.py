@@ -35,7 +35,8 @@ Conventions:
 Speed: the error functions are numpy over all rows (no Python loop per point). A Python factor costs about
 0.1 ms per call whatever its size, so one factor per landmark is slow; one factor per keyframe makes all its
 landmarks one clique for GTSAM's elimination (fill-in). Eq. 13 therefore takes chunks of ``chunk_size``
-landmarks.
+landmarks. A factor evaluates its keyframes' depth only at its pixels (:func:`provider_expansion`,
+:class:`runtime.dense.lookup.MapExpansion`): with the linearised decoder no depth map is formed during LM.
 """
 
 from __future__ import annotations
@@ -48,11 +49,12 @@ import numpy as np
 
 from runtime.backend.factors import custom_factor
 from runtime.dense.config import DepthFactorConfig
-from runtime.dense.lookup import Bilinear, inside_image, off_depth_edges
+from runtime.dense.lookup import Bilinear, MapExpansion, as_expansion, inside_image, off_depth_edges
 from runtime.geometry import inv_T, project_pinhole
 
 __all__ = [
     "DepthProvider",
+    "provider_expansion",
     "depth_sigma",
     "geometric_residuals",
     "make_geometric_depth_factors",
@@ -117,14 +119,28 @@ def _code_dim(provider: DepthProvider) -> int:
     return int(dim)
 
 
+def provider_expansion(provider: DepthProvider, code: np.ndarray, jacobian: bool) -> MapExpansion:
+    """The provider's depth at ``code`` as a :class:`MapExpansion`: its own first-order expansion when it has
+    one (:meth:`runtime.dense.linearized.LinearizedDepth.expansion`: no map is computed), else the map decoded at
+    ``code`` (with its Jacobian when ``jacobian``)."""
+    code = np.asarray(code, dtype=np.float64)
+    expansion = getattr(provider, "expansion", None)
+    if expansion is not None:
+        return expansion(code)
+    if jacobian:
+        return MapExpansion(*provider.jacobian(code))
+    return MapExpansion(provider.depth(code))
+
+
 # --------------------------------------------------------------------------- Eq. 13
 def geometric_residuals(
     T_w_b: np.ndarray,
     T_b_c: np.ndarray,
     X_w: np.ndarray,
     lookup: Bilinear,
-    depth: np.ndarray,
+    depth: np.ndarray | MapExpansion,
     J: np.ndarray | None = None,
+    jacobians: bool | None = None,
 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
     """Geometric depth residuals (Eq. 13) ``r_j = [T_c_w x_j]_z - D[p_j, q_j]`` and their Jacobians.
 
@@ -132,18 +148,22 @@ def geometric_residuals(
         T_w_b: (4, 4) body pose of the keyframe; T_b_c: (4, 4) camera-to-body.
         X_w: (M, 3) landmark positions in the world [m].
         lookup: bilinear weights of the M observed network pixels (fixed measurements).
-        depth: (H, W) decoded depth [m] at the current code.
-        J: (H, W, C) code Jacobian of the depth map; when given, the Jacobians are returned.
+        depth: (H, W) decoded depth [m] at the current code, or its :class:`MapExpansion` (which carries ``J``).
+        J: (H, W, C) code Jacobian of the depth map.
+        jacobians: whether to return the Jacobians; None: when there is a code Jacobian.
 
     Returns:
-        r (M,) [m] and, with ``J``, ``(d r / d xi_pose (M, 6), d r / d x_j (M, 3), d r / d c (M, C))``
+        r (M,) [m] and, with ``jacobians``, ``(d r / d xi_pose (M, 6), d r / d x_j (M, 3), d r / d c (M, C))``
         (the landmark Jacobian row ``n`` is the derivative with respect to landmark ``n`` only).
     """
+    dmap = as_expansion(depth, J)
     T_w_c = T_w_b @ T_b_c
     T_c_w = inv_T(T_w_c)
     p_c = X_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]  # (M, 3)
-    r = p_c[:, 2] - lookup.sample(depth)
-    if J is None:
+    r = p_c[:, 2] - dmap.sample(lookup)
+    if jacobians is None:
+        jacobians = dmap.J0 is not None
+    if not jacobians:
         return r, None
     M = X_w.shape[0]
     T_b_w = inv_T(T_w_b)
@@ -152,7 +172,7 @@ def geometric_residuals(
     # z(xi) = e . (Exp(xi)^-1 p_b) + t  ->  dz/domega = e . [p_b]_x = e x p_b, dz/dv = -e
     J_pose = np.concatenate([np.cross(e[None], p_b), np.broadcast_to(-e, (M, 3))], 1)
     J_lm = np.broadcast_to(T_c_w[2, :3], (M, 3)).copy()
-    J_code = -lookup.sample(J)  # (M, C)
+    J_code = -dmap.sample_jacobian(lookup)  # (M, C)
     return r, (J_pose, J_lm, J_code)
 
 
@@ -164,7 +184,7 @@ def make_geometric_depth_factors(
     T_b_c: np.ndarray,
     landmark_keys: Sequence[int],
     cfg: DepthFactorConfig | None = None,
-    depth_map: np.ndarray | None = None,
+    depth_map: np.ndarray | MapExpansion | None = None,
 ) -> list:
     """Eq. 13 factors of one code keyframe, the landmarks ``L(j)`` as graph variables.
 
@@ -180,7 +200,8 @@ def make_geometric_depth_factors(
         T_b_c: (4, 4) camera-to-body.
         landmark_keys: (M,) distinct keys of ``L(j)`` (Point3 in the world).
         cfg: settings (sigma conversion, Huber, chunking, edge test).
-        depth_map: (H, W) decoded depth at the keyframe's current code (needed with ``cfg.edge_rel``).
+        depth_map: (H, W) decoded depth at the keyframe's current code, or its :class:`MapExpansion` (needed
+            with ``cfg.edge_rel``).
 
     Returns:
         list of ``gtsam.CustomFactor`` (empty when no observation is usable).
@@ -201,8 +222,9 @@ def make_geometric_depth_factors(
     if cfg.edge_rel is not None:
         if depth_map is None:
             raise ValueError("cfg.edge_rel needs the depth map at the current code (depth_map)")
-        if np.shape(depth_map)[:2] != shape:
-            raise ValueError(f"depth_map has shape {np.shape(depth_map)}, the uncertainty map {shape}")
+        depth_map = as_expansion(depth_map)
+        if depth_map.shape != shape:
+            raise ValueError(f"depth_map has shape {depth_map.shape}, the uncertainty map {shape}")
         keep &= off_depth_edges(depth_map, uv, cfg.edge_rel)
     if not keep.any():
         return []
@@ -224,11 +246,10 @@ def _geometric_factor(pose_key, code_key, lkeys, lookup, sigmas, provider, T_b_c
         T_w_b = values.atPose3(pose_key).matrix()
         code = np.asarray(values.atVector(code_key), dtype=np.float64)
         X_w = np.array([values.atPoint3(int(k)) for k in lkeys]).reshape(-1, 3)
+        e = provider_expansion(provider, code, want_jacobians)
         if not want_jacobians:
-            r, _ = geometric_residuals(T_w_b, T_b_c, X_w, lookup, provider.depth(code))
-            return r, None
-        depth, J = provider.jacobian(code)
-        r, (J_pose, J_lm, J_code) = geometric_residuals(T_w_b, T_b_c, X_w, lookup, depth, J)
+            return geometric_residuals(T_w_b, T_b_c, X_w, lookup, e, jacobians=False)[0], None
+        r, (J_pose, J_lm, J_code) = geometric_residuals(T_w_b, T_b_c, X_w, lookup, e, jacobians=True)
         M = r.size
         blocks = np.zeros((M, M, 3))  # landmark n only moves row n
         blocks[np.arange(M), np.arange(M)] = J_lm
@@ -270,12 +291,13 @@ def consistency_residuals(
     K: Sequence[float],
     lookup2: Bilinear,
     rays2: np.ndarray,
-    depth1: np.ndarray,
-    depth2: np.ndarray,
+    depth1: np.ndarray | MapExpansion,
+    depth2: np.ndarray | MapExpansion,
     J1: np.ndarray | None = None,
     J2: np.ndarray | None = None,
     min_depth: float = 0.05,
     edge_rel: float | None = None,
+    jacobians: bool | None = None,
 ) -> ConsistencyResult:
     """Depth consistency residuals (Eq. 14) of samples ``P2`` of keyframe k2 against keyframe k1.
 
@@ -287,17 +309,20 @@ def consistency_residuals(
         K: ``(fx, fy, cx, cy)`` of the network camera (pinhole, both keyframes).
         lookup2: bilinear weights of the S sample pixels ``P2`` in k2.
         rays2: (S, 3) ``K^-1 [u, v, 1]`` of the samples (z = 1).
-        depth1, depth2: (H, W) decoded depth maps [m] of k1 and k2.
-        J1, J2: (H, W, C) their code Jacobians; both or neither (then no Jacobians are computed).
+        depth1, depth2: (H, W) decoded depth maps [m] of k1 and k2, or their :class:`MapExpansion` (which
+            carry ``J1``, ``J2``).
+        J1, J2: (H, W, C) their code Jacobians.
         min_depth: smallest valid depth [m] in k1.
         edge_rel: rows whose ``P1`` is on a depth edge of ``depth1`` are not valid; None: no test.
+        jacobians: whether to compute the Jacobians; None: when both maps have code Jacobians.
 
     Returns:
         :class:`ConsistencyResult`.
     """
     fx, fy, cx, cy = (float(k) for k in K)
-    H, W = depth1.shape[:2]
-    d2 = lookup2.sample(depth2)  # (S,)
+    e1, e2 = as_expansion(depth1, J1), as_expansion(depth2, J2)
+    H, W = e1.shape
+    d2 = e2.sample(lookup2)  # (S,)
     p_c2 = d2[:, None] * rays2  # (S, 3)
     T_c_b = inv_T(T_b_c)
     T_b1_b2 = inv_T(T_w_b1) @ T_w_b2
@@ -311,8 +336,8 @@ def consistency_residuals(
     lookup1 = Bilinear(uv1, (H, W))
     valid = front & lookup1.inside
     if edge_rel is not None:
-        valid &= off_depth_edges(depth1, uv1, edge_rel)
-    d1, gu, gv = lookup1.sample_grad(depth1)
+        valid &= off_depth_edges(e1, uv1, edge_rel)
+    d1, gu, gv = e1.sample_grad(lookup1)
     r = np.where(valid, d1 - z1, 0.0)
     # dr/dp_c1 = g^T dP1/dp_c1 - e3  (S, 3)
     a = np.stack([gu * fx / zs, gv * fy / zs, -(gu * fx * p_c1[:, 0] + gv * fy * p_c1[:, 1]) / zs**2 - 1.0], -1)
@@ -320,16 +345,18 @@ def consistency_residuals(
     dp_dd2 = rays2 @ R12.T  # (S, 3) d p_c1 / d d2
     dr_dd2 = np.einsum("si,si->s", a, dp_dd2)
     dz_dd2 = dp_dd2[:, 2]
+    if jacobians is None:
+        jacobians = e1.J0 is not None and e2.J0 is not None
     jac = None
-    if J1 is not None and J2 is not None:
-        jac = _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, (lookup1, lookup2), (J1, J2))
+    if jacobians:
+        jac = _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, (lookup1, lookup2), (e1, e2))
     return ConsistencyResult(r, valid, uv1, z1, dr_dd2, dz_dd2, jac)
 
 
-def _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, lookups, code_jacobians):
+def _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, lookups, maps):
     """``(J_x1, J_x2, J_c1, J_c2)`` of Eq. 14 from ``a = dr/dp_c1`` (S, 3) (:func:`consistency_residuals`)."""
     lookup1, lookup2 = lookups
-    J1, J2 = code_jacobians
+    e1, e2 = maps
     S = a.shape[0]
     R_c_b = inv_T(T_b_c)[:3, :3]
     T_b1_w = inv_T(T_w_b1)
@@ -343,8 +370,8 @@ def _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, lookup
     b2 = b1 @ T_b1_b2[:3, :3]  # dr/dp_b2
     # p_b1 = T_b1_b2 Exp(xi2) p_b2: d/domega = -R_b1_b2 [p_b2]_x, d/dv = R_b1_b2
     J_x2 = np.concatenate([np.cross(p_b2, b2), b2], 1)
-    J_c1 = np.where(valid[:, None], lookup1.sample(J1), 0.0)
-    J_c2 = dr_dd2[:, None] * lookup2.sample(J2)
+    J_c1 = np.where(valid[:, None], e1.sample_jacobian(lookup1), 0.0)
+    J_c2 = dr_dd2[:, None] * e2.sample_jacobian(lookup2)
     jac = (J_x1, J_x2, J_c1, J_c2)
     for Jk in jac:
         if Jk.shape[0] != S:
@@ -410,7 +437,7 @@ def make_consistency_factor(
         raise ValueError(f"keys must be distinct, got {pose_keys}, {code_keys}")
     T1 = _check_T(init_poses[0], "init_poses[0]")
     T2 = _check_T(init_poses[1], "init_poses[1]")
-    depths0 = (p1.depth(np.asarray(init_codes[0])), p2.depth(np.asarray(init_codes[1])))
+    depths0 = (provider_expansion(p1, init_codes[0], False), provider_expansion(p2, init_codes[1], False))
     uv2 = np.asarray(uv2, dtype=np.float64).reshape(-1, 2)
     uv2 = uv2[inside_image(uv2, shape) & off_depth_edges(depths0[1], uv2, cfg.edge_rel)]
     if uv2.shape[0] == 0:
@@ -425,12 +452,9 @@ def make_consistency_factor(
     def error_fn(values, want_jacobians: bool):
         poses = (values.atPose3(kx1).matrix(), values.atPose3(kx2).matrix())
         c1, c2 = (np.asarray(values.atVector(k), dtype=np.float64) for k in (kc1, kc2))
-        if not want_jacobians:
-            return consistency_residuals(*poses, *geometry, p1.depth(c1), p2.depth(c2), **ekw).r, None
-        d1, J1 = p1.jacobian(c1)
-        d2, J2 = p2.jacobian(c2)
-        res = consistency_residuals(*poses, *geometry, d1, d2, J1, J2, **ekw)
-        return res.r, list(res.jacobians)
+        e1, e2 = provider_expansion(p1, c1, want_jacobians), provider_expansion(p2, c2, want_jacobians)
+        res = consistency_residuals(*poses, *geometry, e1, e2, jacobians=want_jacobians, **ekw)
+        return res.r, None if res.jacobians is None else list(res.jacobians)
 
     return custom_factor(
         _noise(sigmas, cfg.consis_huber_k),

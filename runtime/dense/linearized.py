@@ -1,15 +1,17 @@
-"""The decoder cache of a keyframe: the network relinearised once per optimisation (Sec. 5.3, Eq. 16-17).
+"""The decoder cache of a keyframe: the network linearised at a code (Sec. 5.3, Eq. 16-17).
 
-When the factors are built, the exact decoder and its finite-difference Jacobian (Eq. 17, one batch of C+1
-codes) are evaluated at each code keyframe's current code (not again when the code did not change). During LM
-the depth map is the first-order expansion ``D(c0) + J(c0) (c - c0)``, so LM runs Gauss-Newton steps on the
-linearised decoder and the next optimisation relinearises exactly. The exact decoder is used for the outputs
-and the depth metrics; :class:`ApproxErrorProbe` measures what the expansion costs.
-"""
+The exact decoder and its finite-difference Jacobian (Eq. 17, one batch of C+1 codes) are evaluated at a
+linearisation point: c = 0 after the prior, then a code an optimisation gave once it moved more than
+``relin_tol`` from the last point (:mod:`runtime.dense.mapper`). During LM the depth map is the first-order
+expansion ``D(c0) + J(c0) (c - c0)``, which the factors evaluate only at their pixels (:meth:`expansion`), so LM
+runs Gauss-Newton steps on the linearised decoder. The exact decoder is used for the outputs and the depth
+metrics; :class:`ApproxErrorProbe` measures what the expansion costs."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from runtime.dense.lookup import MapExpansion
 
 __all__ = ["LinearizedDepth", "ApproxErrorProbe"]
 
@@ -55,6 +57,13 @@ class LinearizedDepth:
 
     def depth(self, code: np.ndarray) -> np.ndarray:
         return self.jacobian(code)[0]
+
+    def expansion(self, code: np.ndarray) -> MapExpansion:
+        """The expansion at ``code`` for the factors, evaluated only where they look (the same values as
+        :meth:`jacobian`'s maps; the first call before any :meth:`relinearize` linearises at ``code``)."""
+        if self.c0 is None:
+            self._relin(code)
+        return MapExpansion(self.D0, self.J0, np.asarray(code, np.float64) - self.c0)
 
     def relinearize(self, code: np.ndarray) -> None:
         """Exact decoder and Jacobian at ``code`` unless it is the current linearisation point (compared as the

@@ -12,7 +12,8 @@ from gtsam.symbol_shorthand import C, L, X
 from runtime.backend.factors import analytic_jacobians, custom_factor, numerical_jacobians
 from runtime.dense.config import SIGMA_PER_LAPLACE_B, DepthFactorConfig
 from runtime.dense.factors import consistency_residuals, make_consistency_factor, make_geometric_depth_factors
-from runtime.dense.lookup import Bilinear, depth_edge_ratio, inside_image
+from runtime.dense.linearized import LinearizedDepth
+from runtime.dense.lookup import Bilinear, MapExpansion, depth_edge_ratio, inside_image
 from runtime.dense.sampling import sample_consistency_pixels
 from runtime.geometry import inv_T, to_pose3
 from tests.dense.fakes import (
@@ -84,6 +85,76 @@ def test_bilinear_is_exact_on_affine_maps_with_its_gradient():
     # multi-channel maps interpolate per channel
     stack = np.stack([img, 2 * img], -1)
     np.testing.assert_allclose(lk.sample(stack)[:, 1], 2 * lk.sample(img), atol=1e-12)
+
+
+def test_an_expansion_looks_up_what_the_formed_map_gives():
+    """``MapExpansion(D0, J0, dc)`` at some pixels = the map ``D0 + J0 dc`` looked up there: values, gradient,
+    code Jacobian and the depth-edge ratio, float32 maps as the network gives them included."""
+    rng = np.random.default_rng(5)
+    D0 = (2.0 + smooth_bases(1, H, W, seed=3, amplitude=0.5)[0]).astype(np.float32)
+    J0 = smooth_bases(CD, H, W, seed=4).transpose(1, 2, 0).astype(np.float32)
+    D0[10:14, 20:30] += 1.0  # a step, for the edge test
+    dc = rng.normal(0, 0.3, CD)
+    uv = np.c_[rng.uniform(-2, W + 1, 300), rng.uniform(-2, H + 1, 300)]
+    lk = Bilinear(uv, (H, W))
+    e = MapExpansion(D0, J0, dc)
+    D = D0 + np.asarray(J0, np.float64) @ dc
+    np.testing.assert_allclose(e.sample(lk), lk.sample(D), rtol=1e-12)
+    for got, want in zip(e.sample_grad(lk), lk.sample_grad(D), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(e.sample_jacobian(lk), lk.sample(J0), rtol=1e-12)
+    ratio = depth_edge_ratio(e, uv)
+    np.testing.assert_allclose(ratio, depth_edge_ratio(D, uv), rtol=1e-12)
+    assert (ratio > 0.2).sum() > 3  # the step is seen
+    np.testing.assert_array_equal(MapExpansion(D0, J0, np.zeros(CD)).sample(lk), lk.sample(D0))  # dc = 0: D0
+    with pytest.raises(ValueError, match="Jacobian"):
+        MapExpansion(D0, None, dc)
+    with pytest.raises(ValueError, match="shape"):
+        e.sample(Bilinear(uv, (H + 1, W)))
+
+
+class _Net:
+    code_dim = CD
+
+
+def linearized(prov: LinearDepth, c0: np.ndarray) -> LinearizedDepth:
+    """``prov`` behind the decoder cache, linearised at ``c0`` (exact everywhere: the decoder is linear)."""
+    prov.net = _Net()
+    p = LinearizedDepth(prov)
+    p.relinearize(np.asarray(c0, np.float32).astype(np.float64))  # a code the network can see (float32)
+    return p
+
+
+def test_factors_on_the_decoder_cache_match_the_decoded_maps():
+    """With a linear decoder the cache's expansion is exact away from its point: the factors evaluated on
+    :class:`LinearizedDepth` (looked up, no map formed) give the residuals and Jacobians of the decoded maps."""
+    cfg = fcfg(geo_huber_k=None, consis_huber_k=None, edge_rel=0.05)
+    T, uv, X_w, prov, code = geometric_setup(seed=2, provider_cls=LinearDepth)
+    v = gtsam.Values()
+    v.insert(X(0), to_pose3(T))
+    v.insert(C(0), code)
+    keys = with_landmarks(v, X_w)
+    far = code + 0.3  # the point the cache was linearised at is not where the factor is evaluated
+    cached = linearized(prov, far)
+    (exact,) = make_geometric_depth_factors(X(0), C(0), uv, prov, T_B_C, keys, cfg, prov.depth(code))
+    (fast,) = make_geometric_depth_factors(X(0), C(0), uv, cached, T_B_C, keys, cfg, cached.expansion(code))
+    calls = prov.jacobian_calls
+    np.testing.assert_allclose(fast.unwhitenedError(v), exact.unwhitenedError(v), atol=1e-12)
+    for a, b in zip(analytic_jacobians(fast, v), analytic_jacobians(exact, v), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    Ts, provs, uv2, codes = pair_setup(seed=3, provider_cls=LinearDepth)
+    caches = tuple(linearized(p, c - 0.2) for p, c in zip(provs, codes, strict=True))
+    v = pair_values(Ts, codes)
+    exact = make_consistency_factor((X(0), X(1)), (C(0), C(1)), provs, uv2, K, T_B_C, Ts, codes, cfg)
+    fast = make_consistency_factor((X(0), X(1)), (C(0), C(1)), caches, uv2, K, T_B_C, Ts, codes, cfg)
+    assert fast.dim() == exact.dim() > 40
+    r = exact.unwhitenedError(v)
+    assert 0 < np.count_nonzero(r) < r.size  # rows that left k1's image or sit on an edge are silent
+    np.testing.assert_allclose(fast.unwhitenedError(v), r, atol=1e-12)
+    np.testing.assert_allclose(fast.noiseModel().sigmas(), exact.noiseModel().sigmas(), rtol=1e-12)
+    for a, b in zip(analytic_jacobians(fast, v), analytic_jacobians(exact, v), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    assert prov.jacobian_calls == calls + 1  # the exact factor decoded; the cached one only looked up
 
 
 # --------------------------------------------------------------------------- Eq. 13

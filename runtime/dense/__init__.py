@@ -7,7 +7,8 @@ local dense map. One idea a module:
 * :mod:`runtime.dense.sampling`: the Sec. 5.2 pixel sampler of Eq. 14;
 * :mod:`runtime.dense.linearized`: the decoder cache (:class:`LinearizedDepth`) and its error probe;
 * :mod:`runtime.dense.mapper`: :class:`DenseMapper`, the backend's factor provider;
-* :mod:`runtime.dense.map`: the fused dense map and the depth metrics.
+* :mod:`runtime.dense.map`: back-projection, uncertainty filter, voxel means, per-keyframe maps, depth metrics;
+* :mod:`runtime.dense.fusion`: the fused dense map of a run (``VoxelMap``, written by ``write_fused_map``).
 """
 
 from runtime.dense.config import DenseConfig, DenseMapConfig, DepthFactorConfig

@@ -1,10 +1,8 @@
 """Local dense map (Sec. 5.3, Fig. 1 and 12) and depth evaluation (Table 2).
 
-* :func:`fuse_depth_maps`: a set of keyframes' decoded depths, filtered by the predicted uncertainty,
-  back-projected at network resolution with the network camera (``NetworkMapping.camera(cam.pinhole())``),
-  moved to the world with ``T_w_b T_b_c`` and voxel-downsampled (plain means, no normals); :func:`write_dense_map`
-  writes such a cloud as PLY. ``dit-slam``'s ``dense_map.ply`` is the fused map of the whole run instead
-  (:class:`runtime.dense.fusion.VoxelMap`: 1 / B^2 weights, normals, every keyframe integrated once).
+* :func:`uncertainty_mask`, :func:`backproject`, :func:`voxel_downsample`: the pixel filter, the pinhole
+  back-projection and the plain voxel means that :class:`runtime.dense.fusion.VoxelMap` (the fused map of a run,
+  ``dit-slam``'s ``dense_map.ply``, written by :func:`runtime.dense.fusion.write_fused_map`) builds on.
 * :func:`save_keyframe_maps`: per-keyframe depth and uncertainty maps (``.npz`` float32 and 16-bit PNGs in
   the depth0 convention, value = metres * 5000); :func:`write_keyframe_maps` writes the ``keyframe_depth/``
   folder of them. Both outputs are written atomically (temporary name, then rename).
@@ -24,15 +22,12 @@ import numpy as np
 
 from runtime.dense.config import DenseMapConfig
 from runtime.geometry import Camera, NetworkMapping
-from runtime.io.ply import write_ply
-from runtime.outputs import atomic_folder, atomic_write
+from runtime.outputs import atomic_folder
 
 __all__ = [
     "uncertainty_mask",
     "backproject",
     "voxel_downsample",
-    "fuse_depth_maps",
-    "write_dense_map",
     "write_keyframe_maps",
     "save_keyframe_maps",
     "gt_depth_to_network",
@@ -119,76 +114,9 @@ def voxel_downsample(
     col = None
     if rgb is not None:
         rgb = np.asarray(rgb).reshape(-1, 3)
-        col = (
-            np.stack([np.bincount(inv, weights=rgb[:, i].astype(np.float64)) for i in range(3)], -1)
-            / cnt[:, None]
-        )
+        col = np.stack([np.bincount(inv, weights=rgb[:, i].astype(np.float64)) for i in range(3)], -1) / cnt[:, None]
         col = np.clip(np.rint(col), 0, 255).astype(np.uint8)
     return out, col
-
-
-def fuse_depth_maps(
-    depths: Sequence[np.ndarray],
-    T_w_bs: Sequence[np.ndarray],
-    camera: Camera,
-    T_b_c: np.ndarray,
-    uncertainties: Sequence[np.ndarray | None] | None = None,
-    images: Sequence[np.ndarray | None] | None = None,
-    cfg: DenseMapConfig | None = None,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """Fuse keyframe depth maps into one world point cloud.
-
-    Args:
-        depths: K maps (H, W) [m] at network resolution (decoded with the optimised codes).
-        T_w_bs: K body poses (4, 4); T_b_c: (4, 4) camera-to-body.
-        camera: the network camera (pinhole, W x H), e.g. ``NetworkMapping.camera(cam.pinhole())``.
-        uncertainties: K maps (H, W) of the Laplace scale ``B`` [m] (None: no uncertainty filter).
-        images: K grey (H, W) or RGB (H, W, 3) uint8 images at network resolution for colours (all or none).
-        cfg: filter, stride and voxel settings.
-
-    Returns:
-        xyz (N, 3) in the world [m] and rgb (N, 3) uint8 (None without images).
-    """
-    cfg = cfg or DenseMapConfig()
-    n = len(depths)
-    if len(T_w_bs) != n:
-        raise ValueError(f"{n} depth maps but {len(T_w_bs)} poses")
-    uncertainties = [None] * n if uncertainties is None else list(uncertainties)
-    if len(uncertainties) != n:
-        raise ValueError(f"{n} depth maps but {len(uncertainties)} uncertainty maps")
-    with_colour = images is not None
-    if with_colour and len(images) != n:
-        raise ValueError(f"{n} depth maps but {len(images)} images")
-    T_b_c = np.asarray(T_b_c, dtype=np.float64)
-    pts, cols = [], []
-    for k in range(n):  # one iteration per keyframe (a handful), pixels are vectorised
-        d = np.asarray(depths[k])
-        mask = uncertainty_mask(d, uncertainties[k], cfg)
-        p_c, uv = backproject(d, camera, mask, cfg.stride)
-        T_w_c = np.asarray(T_w_bs[k], dtype=np.float64) @ T_b_c
-        pts.append(p_c @ T_w_c[:3, :3].T + T_w_c[:3, 3])
-        if with_colour:
-            img = np.asarray(images[k])
-            if img.shape[:2] != d.shape or img.dtype != np.uint8:
-                raise ValueError(f"image {k} must be uint8 with size {d.shape}, got {img.dtype} {img.shape}")
-            c = img[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)]
-            cols.append(np.repeat(c[:, None], 3, 1) if c.ndim == 1 else c[:, :3])
-    xyz = np.concatenate(pts) if pts else np.zeros((0, 3))
-    rgb = (np.concatenate(cols) if cols else np.zeros((0, 3), np.uint8)) if with_colour else None
-    return voxel_downsample(xyz, cfg.voxel, rgb)
-
-
-def write_dense_map(path: str | Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
-    """Write the fused cloud as PLY (``dense_map.ply`` by convention); ``path`` may be a folder.
-
-    Written atomically (:func:`runtime.outputs.atomic_write`): an earlier file at ``path`` stays whole until the
-    new one is complete, and a failed or interrupted write leaves nothing under the final name.
-    """
-    path = Path(path)
-    if path.suffix.lower() != ".ply":
-        path = path / "dense_map.ply"
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    return atomic_write(path, lambda tmp: write_ply(tmp, xyz, rgb))
 
 
 def write_keyframe_maps(
@@ -281,16 +209,7 @@ def sparse_depth_image(uv: np.ndarray, z: np.ndarray, shape: tuple[int, int]) ->
     with np.errstate(invalid="ignore"):
         u = np.floor(uv[:, 0] + 0.5)
         v = np.floor(uv[:, 1] + 0.5)
-        ok = (
-            np.isfinite(u)
-            & np.isfinite(v)
-            & np.isfinite(z)
-            & (z > 0)
-            & (u >= 0)
-            & (v >= 0)
-            & (u < W)
-            & (v < H)
-        )
+        ok = np.isfinite(u) & np.isfinite(v) & np.isfinite(z) & (z > 0) & (u >= 0) & (v >= 0) & (u < W) & (v < H)
     idx = (v[ok] * W + u[ok]).astype(np.int64)
     np.minimum.at(out, idx, z[ok])
     out[~np.isfinite(out)] = 0.0

@@ -9,9 +9,9 @@ import pytest
 
 from runtime.dense import DenseConfig, DenseMapper
 from runtime.dense.config import DenseMapConfig
-from runtime.dense.fusion import VoxelMap, depth_normals, surface_metrics, write_fused_map
+from runtime.dense.fusion import FINEST_VOXEL, VoxelMap, depth_normals, surface_metrics, write_fused_map
 from runtime.dense.mapper import _KfDense, _Stats
-from runtime.geometry import Camera
+from runtime.geometry import Camera, inv_T
 from runtime.io.ply import read_ply, read_ply_normals, read_ply_vertex
 from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
 
@@ -41,6 +41,52 @@ def test_two_identical_depth_maps_of_a_plane_give_points_on_it_with_its_normal()
     # the wall's normal, facing the camera (which is at x = 0.2 < 3): -x
     np.testing.assert_allclose(nrm[has], np.tile([-1.0, 0.0, 0.0], (int(has.sum()), 1)), atol=1e-9)
     assert (rgb == 128).all()  # no image: grey
+
+
+def test_two_keyframes_from_different_poses_fuse_onto_the_wall_they_see():
+    """Two keyframes at different poses see the wall x_w = 3 with exact depth maps and grey images."""
+    Ts = [body_pose((0.0, 0.0, 0.1), (0.0, 0.0, 0.0)), body_pose((0.0, 0.05, -0.1), (0.3, 0.4, 0.1))]
+    depths = [plane_depth(T, K, (H, W), 3.0) for T in Ts]
+    grey = [np.full((H, W), 100, np.uint8), np.full((H, W), 200, np.uint8)]
+    cfg = DenseMapConfig(voxel=0.0, max_rel_uncertainty=None)
+    m = VoxelMap.from_config(cfg)  # voxel 0: the finest map; pixels are > 5 cm apart on the wall
+    assert m.voxel == FINEST_VOXEL
+    assert m.integrate(0, depths[0], Ts[0] @ T_B_C, CAM, image=grey[0], cfg=cfg) == H * W
+    xyz0, rgb0, _, _ = m.points()
+    assert len(xyz0) == H * W and (rgb0 == 100).all()  # one voxel a pixel, the grey image's value in r, g, b
+    assert m.integrate(1, depths[1], Ts[1] @ T_B_C, CAM, image=grey[1], cfg=cfg) == H * W
+    xyz, rgb, _, count = m.points()
+    assert count.sum() == 2 * H * W and rgb.shape == xyz.shape and rgb.dtype == np.uint8
+    np.testing.assert_allclose(xyz[:, 0], 3.0, atol=1e-9)  # every fused point on the wall
+    assert set(np.unique(rgb[count == 1]).tolist()) == {100, 200}
+    # the fused map spans what the cameras see: the first camera's centre ray hits the wall in its centre
+    T_w_c = Ts[0] @ T_B_C
+    ray = T_w_c[:3, 2]
+    hit = T_w_c[:3, 3] + ray * (3.0 - T_w_c[0, 3]) / ray[0]
+    assert np.min(np.linalg.norm(xyz - hit, axis=1)) < 0.05
+    # coarser voxels average more points: fewer of them, still on the plane
+    coarse = VoxelMap(0.1)
+    for k in range(2):
+        coarse.integrate(k, depths[k], Ts[k] @ T_B_C, CAM, image=grey[k], cfg=cfg)
+    xyz_v, _, _, _ = coarse.points()
+    assert 10 < len(xyz_v) < len(xyz)
+    np.testing.assert_allclose(xyz_v[:, 0], 3.0, atol=1e-9)
+
+
+def test_the_uncertainty_filter_drops_the_unreliable_half_of_a_keyframe():
+    d = np.full((H, W), 2.0)
+    B = np.full((H, W), 0.05)
+    B[:, : W // 2] = 0.5  # left half unreliable: B / depth = 0.25 > 0.1 (the default max_rel_uncertainty)
+    d[0, 0] = 20.0  # out of range
+    m = VoxelMap.from_config(DenseMapConfig(voxel=0.0))
+    T_w_c = body_pose() @ T_B_C
+    assert m.integrate(0, d, T_w_c, CAM, uncertainty=B, cfg=DenseMapConfig(voxel=0.0)) == H * (W - W // 2)
+    xyz, _, _, _ = m.points()
+    assert len(xyz) == H * (W - W // 2)
+    p_c = xyz @ inv_T(T_w_c)[:3, :3].T + inv_T(T_w_c)[:3, 3]
+    u = CAM.fx * p_c[:, 0] / p_c[:, 2] + CAM.cx
+    assert np.rint(u).min() == W // 2  # only the right half's pixels are in the map
+    np.testing.assert_allclose(p_c[:, 2], 2.0, atol=1e-9)
 
 
 def test_depth_normals_are_undefined_across_a_depth_jump_and_on_the_border():

@@ -5,8 +5,9 @@ leaves nothing under the final name, and an earlier complete output stays whole 
 import numpy as np
 import pytest
 
+from runtime.dense import fusion
 from runtime.dense import map as dense_map
-from runtime.io.ply import read_ply
+from runtime.io.ply import read_ply, read_ply_normals, read_ply_vertex
 from tests.reliability.fakes import fail_on_call
 
 
@@ -24,27 +25,32 @@ def _maps(n, offset=0.0):
 def test_dense_map_ply_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
     rng = np.random.default_rng(0)
     xyz, rgb = rng.normal(size=(50, 3)), rng.integers(0, 255, (50, 3), dtype=np.uint8)
-    real = dense_map.write_ply
+    nrm = rng.normal(size=(50, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    count = rng.integers(1, 5, 50)
+    real = fusion.write_ply
 
-    def half(path, pts, colours=None):  # the header and some points, then Ctrl-C
+    def half(path, *args):  # the header and some points, then Ctrl-C
         path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 50\n")
         raise KeyboardInterrupt
 
     final = tmp_path / "dense_map.ply"
-    monkeypatch.setattr(dense_map, "write_ply", half)
+    monkeypatch.setattr(fusion, "write_ply", half)
     with pytest.raises(KeyboardInterrupt):
-        dense_map.write_dense_map(final, xyz, rgb)
+        fusion.write_fused_map(final, xyz, rgb, nrm, count)
     assert _listing(tmp_path) == []  # neither a truncated dense_map.ply nor a temporary file
-    monkeypatch.setattr(dense_map, "write_ply", real)
-    dense_map.write_dense_map(final, xyz, rgb)
+    monkeypatch.setattr(fusion, "write_ply", real)
+    fusion.write_fused_map(final, xyz, rgb, nrm, count)
     whole = final.read_bytes()
-    monkeypatch.setattr(dense_map, "write_ply", half)
+    monkeypatch.setattr(fusion, "write_ply", half)
     with pytest.raises(KeyboardInterrupt):
-        dense_map.write_dense_map(tmp_path, xyz[:10])  # a new map into the folder: fails mid-way
+        fusion.write_fused_map(tmp_path, xyz[:10], rgb[:10], nrm[:10], count[:10])  # into the folder: fails
     assert _listing(tmp_path) == ["dense_map.ply"] and final.read_bytes() == whole  # the earlier map is whole
     got, got_rgb = read_ply(final)
     np.testing.assert_allclose(got, xyz.astype(np.float32))
     assert (got_rgb == rgb).all()
+    np.testing.assert_array_equal(read_ply_normals(final), nrm.astype(np.float32))
+    np.testing.assert_array_equal(read_ply_vertex(final)["keyframes"], count)
 
 
 def test_keyframe_depth_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):

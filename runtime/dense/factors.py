@@ -445,7 +445,7 @@ def make_consistency_factor(
     lookup2 = Bilinear(uv2, shape)
     rays2 = np.stack([(uv2[:, 0] - cx) / fx, (uv2[:, 1] - cy) / fy, np.ones(uv2.shape[0])], -1)
     ekw = {"min_depth": cfg.min_depth, "edge_rel": cfg.edge_rel}
-    res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, **ekw)
+    res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, jacobians=False, **ekw)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)
     geometry = (T_b_c, K, lookup2, rays2)
 

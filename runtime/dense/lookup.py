@@ -69,6 +69,7 @@ class Bilinear:
         i00 = y0 * W + x0
         self.idx = np.stack([i00, i00 + 1, i00 + W, i00 + W + 1], -1)  # (N, 4) flat indices: 00, 10, 01, 11
         self.w = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], -1)  # (N, 4)
+        self.memo: tuple | None = None  # a MapExpansion's D0 and J0 at these pixels (MapExpansion.sample)
 
     def _corners(self, img: np.ndarray) -> np.ndarray:
         img = np.asarray(img)
@@ -145,10 +146,26 @@ class MapExpansion:
         if lookup.shape != self.shape:
             raise ValueError(f"map has shape {self.shape}, the lookup was built for {lookup.shape}")
 
+    def _at_fixed(self, lookup: Bilinear) -> tuple[np.ndarray, np.ndarray | None]:
+        """``D0`` (N,) and ``J0`` (N, C) interpolated at the lookup's pixels, kept on the lookup for as long as it
+        is asked about this expansion point (a factor's fixed pixels, evaluated at many codes)."""
+        self._check(lookup)
+        memo = lookup.memo
+        if memo is None or memo[0] is not self.D0 or memo[1] is not self.J0:
+            flat = lookup.idx.reshape(-1)
+            d0 = lookup.interp(self._D0.take(flat).astype(np.float64, copy=False).reshape(lookup.idx.shape))
+            j0 = None
+            if self._J0 is not None:
+                j0 = lookup.interp(
+                    self._J0.take(flat, axis=0).astype(np.float64, copy=False).reshape(*lookup.idx.shape, -1)
+                )
+            memo = lookup.memo = (self.D0, self.J0, d0, j0)
+        return memo[2], memo[3]
+
     def sample(self, lookup: Bilinear) -> np.ndarray:
         """Depth (N,) [m] at the lookup's pixels."""
-        self._check(lookup)
-        return lookup.interp(self.at(lookup.idx))
+        d0, j0 = self._at_fixed(lookup)
+        return d0 if self.dc is None else d0 + j0 @ self.dc
 
     def sample_grad(self, lookup: Bilinear) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Depth (N,) at the lookup's pixels and the interpolant's derivatives ``d/du``, ``d/dv`` (N,)."""
@@ -158,11 +175,9 @@ class MapExpansion:
 
     def sample_jacobian(self, lookup: Bilinear) -> np.ndarray:
         """Code Jacobian (N, C) of the depth at the lookup's pixels."""
-        self._check(lookup)
         if self._J0 is None:
             raise ValueError("this expansion has no code Jacobian")
-        J = self._J0.take(lookup.idx.reshape(-1), axis=0).astype(np.float64, copy=False)
-        return lookup.interp(J.reshape(*lookup.idx.shape, -1))
+        return self._at_fixed(lookup)[1]
 
 
 def as_expansion(depth: np.ndarray | MapExpansion, J: np.ndarray | None = None) -> MapExpansion:

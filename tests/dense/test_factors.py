@@ -106,7 +106,13 @@ def test_an_expansion_looks_up_what_the_formed_map_gives():
     ratio = depth_edge_ratio(e, uv)
     np.testing.assert_allclose(ratio, depth_edge_ratio(D, uv), rtol=1e-12)
     assert (ratio > 0.2).sum() > 3  # the step is seen
-    np.testing.assert_array_equal(MapExpansion(D0, J0, np.zeros(CD)).sample(lk), lk.sample(D0))  # dc = 0: D0
+    np.testing.assert_allclose(MapExpansion(D0, J0, np.zeros(CD)).sample(lk), lk.sample(D0), rtol=1e-12)  # dc = 0
+    # the lookup keeps the last expansion point's values at its pixels: another point is looked up afresh
+    D1, J1 = D0 + np.float32(1.0), 2 * J0
+    np.testing.assert_allclose(
+        MapExpansion(D1, J1, dc).sample(lk), lk.sample(D1 + np.asarray(J1, float) @ dc), rtol=1e-12
+    )
+    np.testing.assert_allclose(e.sample(lk), lk.sample(D), rtol=1e-12)
     with pytest.raises(ValueError, match="Jacobian"):
         MapExpansion(D0, None, dc)
     with pytest.raises(ValueError, match="shape"):

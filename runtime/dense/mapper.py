@@ -91,7 +91,6 @@ class _KfDense:
     fused: bool = False  # integrated into the fused map
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
-    samples: dict[int, np.ndarray] = field(default_factory=dict)  # Eq. 14 pixels (S, 2) against k1, by k1
 
     @property
     def provider(self) -> LinearizedDepth:
@@ -312,17 +311,14 @@ class DenseMapper:
         from gtsam.symbol_shorthand import C, X
 
         d1, d2 = self.kfs[k1], self.kfs[k2]
-        uv2 = d2.samples.get(k1)
-        if uv2 is None:  # the same pixels at every optimisation of the pair (seeded by it)
-            rng = np.random.default_rng([self.cfg.seed, k1, k2])
-            w, h = self.net.width, self.net.height
-            uv2 = d2.samples[k1] = sample_consistency_pixels(d2.feat_uv, w, h, self.cfg.n_consis, rng=rng, margin=2).uv
+        rng = np.random.default_rng([self.cfg.seed, k1, k2])
+        s = sample_consistency_pixels(d2.feat_uv, self.net.width, self.net.height, self.cfg.n_consis, rng=rng, margin=2)
         try:
             return make_consistency_factor(
                 (X(k1), X(k2)),
                 (C(k1), C(k2)),
                 (d1.provider, d2.provider),
-                uv2,
+                s.uv,
                 self.K_net,
                 self.T_b_c,
                 (backend.keyframe(k1).T_w_b, backend.keyframe(k2).T_w_b),

@@ -127,7 +127,7 @@ class DenseConfig:
     n_consis: int = 300
     code_prior_sigma: float = 1.0
     start_after_s: float = 5.0
-    relin_tol: float = 0.1
+    relin_tol: float = 0.3
     background: bool = True
     save_maps: bool = True
     seed: int = 0

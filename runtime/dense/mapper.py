@@ -385,16 +385,23 @@ class DenseMapper:
         if d.evaluated or not d.had_code or self.depth_gt is None:
             return
         d.evaluated = True
-        gt = self.depth_gt(d.frame_idx)
-        if gt is None:
-            return
-        gt_net = gt_depth_to_network(gt, self.camera, self.mapping)
         uv, z = self._observed_points(backend, d.kf_id)
-        sp = sparse_depth_image(self.mapping.points_to_network(uv), z, gt_net.shape)
-        self.per_kf_metrics[d.kf_id] = self._submit(self._depth_errors, d.provider, d.code.copy(), gt_net, sp)
+        uv_net = self.mapping.points_to_network(uv)
+        self.per_kf_metrics[d.kf_id] = self._submit(
+            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z
+        )
 
-    def _depth_errors(self, provider: LinearizedDepth, code: np.ndarray, gt_net: np.ndarray, sp: np.ndarray) -> dict:
-        """Table 2 metrics of a keyframe's sparse points, prior (c = 0) and optimised code (network thread)."""
+    def _depth_errors(
+        self, provider: LinearizedDepth, code: np.ndarray, frame_idx: int, uv_net: np.ndarray, z: np.ndarray
+    ) -> dict | None:
+        """Table 2 metrics of a keyframe's sparse points (network pixels ``uv_net``, depths ``z``), prior (c = 0)
+        and optimised code, against the ground truth of its frame (network thread: reading and resampling the
+        ground truth is evaluation, not tracking work); None without ground truth for the frame."""
+        gt = self.depth_gt(frame_idx)
+        if gt is None:
+            return None
+        gt_net = gt_depth_to_network(gt, self.camera, self.mapping)
+        sp = sparse_depth_image(uv_net, z, gt_net.shape)
         return {
             "sparse": depth_metrics(sp, gt_net) if (sp > 0).any() and (gt_net[sp > 0] > 0).any() else None,
             "prior": depth_metrics(np.asarray(provider.exact(np.zeros_like(code)), np.float64), gt_net),
@@ -447,12 +454,12 @@ class DenseMapper:
         }
         if self.probe is not None:
             res.update(self.probe.metrics())
-        if self.per_kf_metrics:
-            per_kf = [job.result() for job in self.per_kf_metrics.values()]
+        per_kf = [m for m in (job.result() for job in self.per_kf_metrics.values()) if m is not None]
+        if per_kf:
             res["depth_metrics"] = {
                 stage: mean_metrics([m[stage] for m in per_kf if m[stage] is not None])
                 for stage in ("sparse", "prior", "optimised")
             }
-            res["depth_metrics_keyframes"] = len(self.per_kf_metrics)
+            res["depth_metrics_keyframes"] = len(per_kf)
             res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"
         return res

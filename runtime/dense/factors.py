@@ -242,20 +242,23 @@ def make_geometric_depth_factors(
 
 
 def _geometric_factor(pose_key, code_key, lkeys, lookup, sigmas, provider, T_b_c, cfg):
+    lkeys = [int(k) for k in lkeys]
+    diag = np.arange(len(lkeys))
+
     def error_fn(values, want_jacobians: bool):
         T_w_b = values.atPose3(pose_key).matrix()
         code = np.asarray(values.atVector(code_key), dtype=np.float64)
-        X_w = np.array([values.atPoint3(int(k)) for k in lkeys]).reshape(-1, 3)
+        X_w = np.array([values.atPoint3(k) for k in lkeys]).reshape(-1, 3)
         e = provider_expansion(provider, code, want_jacobians)
         if not want_jacobians:
             return geometric_residuals(T_w_b, T_b_c, X_w, lookup, e, jacobians=False)[0], None
         r, (J_pose, J_lm, J_code) = geometric_residuals(T_w_b, T_b_c, X_w, lookup, e, jacobians=True)
         M = r.size
         blocks = np.zeros((M, M, 3))  # landmark n only moves row n
-        blocks[np.arange(M), np.arange(M)] = J_lm
+        blocks[diag, diag] = J_lm
         return r, [J_pose, J_code, *blocks.transpose(1, 0, 2)]  # M landmark blocks of (M, 3)
 
-    keys = [pose_key, code_key] + [int(k) for k in lkeys]
+    keys = [pose_key, code_key] + lkeys
     dims = [6, _code_dim(provider)] + [3] * len(lkeys)
     return custom_factor(_noise(sigmas, cfg.geo_huber_k), keys, error_fn, dims, check=cfg.check_shapes)
 
@@ -335,8 +338,9 @@ def consistency_residuals(
     uv1, _ = project_pinhole(K, np.concatenate([p_c1[:, :2], zs[:, None]], 1))
     lookup1 = Bilinear(uv1, (H, W))
     valid = front & lookup1.inside
-    if edge_rel is not None:
-        valid &= off_depth_edges(e1, uv1, edge_rel)
+    if edge_rel is not None:  # tested where the row is valid so far
+        at = np.flatnonzero(valid)
+        valid[at] = off_depth_edges(e1, uv1[at], edge_rel)
     d1, gu, gv = e1.sample_grad(lookup1)
     r = np.where(valid, d1 - z1, 0.0)
     # dr/dp_c1 = g^T dP1/dp_c1 - e3  (S, 3)

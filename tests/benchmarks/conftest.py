@@ -9,15 +9,11 @@ H = W = 64
 
 
 @pytest.fixture(scope="session")
-def tiny(tmp_path_factory):
-    """(stand-in model dir, NYU root with one val frame, benchmarks.common); built once per session."""
+def tiny(standin_64):
+    """(stand-in model dir, NYU root with one val frame, benchmarks.common); built once per session
+    (``tests/conftest.py::standin_64``, shared with notebook 02's test)."""
     torch.set_num_threads(1)
-    from sim.nyu import write_nyu_dataset
-
-    base = tmp_path_factory.mktemp("bench")
-    data = write_nyu_dataset(base / "nyu", n_train=0, n_val=1, seed=0, progress=False)
-    model = common.standin_model("grays", H, W, 0.25, seed=0, out_dir=base / "standin", log=lambda *a: None)
-    return model.model_dir, data, common
+    return standin_64.model_dir, standin_64.data, common
 
 
 def standin_args(model_dir, data) -> list[str]:

@@ -136,11 +136,14 @@ def test_01_depth_modalities_tiny(tmp_path):
 
 
 @pytest.mark.slow
-def test_02_code_jacobian_tiny(tmp_path):
+def test_02_code_jacobian_tiny(tmp_path, standin_64):
+    """On the session's 64x64 stand-in (``tests/conftest.py``): its export in the cache is reused, as on a second
+    run, and its one synthetic NYU frame is the data."""
     out = tmp_path / "out"
     params = {
         "OUT": str(out),
         "MODEL": "standin",
+        "DATA": str(standin_64.data),
         "STANDIN_SIZE": 64,
         "STANDIN_WIDTH_MULT": 0.25,
         "FRAMES": 1,
@@ -154,8 +157,11 @@ def test_02_code_jacobian_tiny(tmp_path):
         "SESSION_SWEEP": False,
         "EXACT": False,
     }
-    nb = execute_notebook(NB / "02_code_jacobian.ipynb", params, tmp_path / "02.ipynb", timeout=300, env=_env(tmp_path))
+    env = dict(_env(tmp_path), DIT_SLAM_CACHE=str(standin_64.cache))
+    nb = execute_notebook(NB / "02_code_jacobian.ipynb", params, tmp_path / "02.ipynb", timeout=300, env=env)
     assert _errors(nb) == []
+    printed = "".join(o.get("text", "") for o in _outputs(nb) if o.output_type == "stream")
+    assert "(reused)" in printed  # the session's export of the stand-in, not a second one
     jac = json.loads((out / "jacobian.json").read_text())
     assert jac["model"]["source"] == "stand-in" and jac["model"]["height"] == 64
     assert jac["deltas"] == pytest.approx([1e-3, 1e-2, 1e-1])

@@ -83,7 +83,7 @@ class SlamConfig:
     still_window_s: float = 0.25  # s of IMU samples for the rest test (several of init.block_s)
     still_gyro_rad_s: float = 0.02  # |mean gyro - bias| bound for rest
     still_accel_m_s2: float = 0.3  # | |mean f| - g | and block-mean spread bound for rest
-    lost_min_landmarks: int = 6  # fewer tracked landmarks: visual tracking lost, coasting on the IMU
+    lost_min_landmarks: int = 6  # fewer tracked landmarks (once as many were tracked): visual tracking lost
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
@@ -177,6 +177,7 @@ class SlamSystem:
         self.last_kf_feats: FrameFeatures | None = None
         self.still_since_kf = True
         self.lost = False
+        self.acquired = False  # visual tracking held (lost_min_landmarks tracked) since the (re)initialisation
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
         self.coast_warned = False
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
@@ -322,9 +323,18 @@ class SlamSystem:
         return T_cur, feats, n_lm
 
     def _update_lost(self, ts: int, n_lm: int) -> None:
-        """Visual tracking lost (too few landmarks tracked) or regained; a long loss asks for relocalisation."""
+        """Visual tracking acquired, lost (too few landmarks tracked) or regained; a long loss asks for
+        relocalisation. Tracking can only be lost once acquired: after a static start the map is empty and its
+        first landmarks come one triangulation at a time as the parallax grows, not a loss."""
         c = self.cfg
-        if n_lm < c.lost_min_landmarks and not self.lost and self.map.n_landmarks:
+        if not self.acquired:
+            if n_lm >= c.lost_min_landmarks:
+                self.acquired = True
+                after = ns_to_s(ts) - self.init_info["t_s"] if self.init_info else 0.0
+                msg = f"visual tracking acquired ({n_lm} landmarks) {after:.2f} s after initialisation"
+                self.event(ts, msg, logging.INFO)
+            return
+        if n_lm < c.lost_min_landmarks and not self.lost:
             self.lost, self.lost_since, self.coast_warned = True, ts, False
             self.event(ts, f"visual tracking lost ({n_lm} landmarks tracked): coasting on the IMU")
         elif self.lost and n_lm < c.lost_min_landmarks and not self.coast_warned and ts - self.lost_since >= s_to_ns(3):

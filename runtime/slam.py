@@ -161,6 +161,12 @@ class SlamSystem:
         self._reset_state()
 
     @property
+    def dead_reckoning(self) -> bool:
+        """Keyframe poses come from the IMU alone: visual tracking lost, or not yet acquired while the map holds its
+        first landmarks (looser triangulation and sparser keyframes then, as while lost)."""
+        return self.lost or self.building
+
+    @property
     def map(self):
         """The shared map state (:class:`runtime.backend.state.MapState`)."""
         return self.backend.map
@@ -178,6 +184,7 @@ class SlamSystem:
         self.still_since_kf = True
         self.lost = False
         self.acquired = False  # visual tracking held (lost_min_landmarks tracked) since the (re)initialisation
+        self.building = False  # not acquired yet, the map has its first landmarks
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
         self.coast_warned = False
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
@@ -323,9 +330,8 @@ class SlamSystem:
         return T_cur, feats, n_lm
 
     def _update_lost(self, ts: int, n_lm: int) -> None:
-        """Visual tracking acquired, lost (too few landmarks tracked) or regained; a long loss asks for
-        relocalisation. Tracking can only be lost once acquired: after a static start the map is empty and its
-        first landmarks come one triangulation at a time as the parallax grows, not a loss."""
+        """Visual tracking acquired, lost (too few landmarks tracked) or regained; a long loss asks for relocalisation.
+        Lost only once acquired: after a static start the map's first landmarks come as the parallax grows."""
         c = self.cfg
         if not self.acquired:
             if n_lm >= c.lost_min_landmarks:
@@ -333,6 +339,7 @@ class SlamSystem:
                 after = ns_to_s(ts) - self.init_info["t_s"] if self.init_info else 0.0
                 msg = f"visual tracking acquired ({n_lm} landmarks) {after:.2f} s after initialisation"
                 self.event(ts, msg, logging.INFO)
+            self.building = not self.acquired and (self.building or self.map.n_landmarks > 0)
             return
         if n_lm < c.lost_min_landmarks and not self.lost:
             self.lost, self.lost_since, self.coast_warned = True, ts, False
@@ -362,7 +369,7 @@ class SlamSystem:
         R_ccur_ckf = self.T_c_b[:3, :3] @ T_cur[:3, :3].T @ kf.T_w_b[:3, :3] @ self.T_b_c[:3, :3]
         par = rotation_compensated_parallax(lk.xn[i_kf], feats.xn[i_cur], R_ccur_ckf, self.camera.fx)
         parallax = float(np.median(par)) if par.size else 0.0
-        if self.lost and ns_to_s(ts - kf.ts) < c.lost_min_kf_interval_s:
+        if self.dead_reckoning and ns_to_s(ts - kf.ts) < c.lost_min_kf_interval_s:
             is_kf, why = False, ""
         else:
             is_kf, why = self.selector.decide(
@@ -466,7 +473,7 @@ class SlamSystem:
                 xn[i, v] = self.track_obs[j][k][0]
                 mask[i, v] = True
         tcfg = base = self.cfg.triangulation
-        if self.lost:  # dead-reckoned keyframe poses are off: accept rougher points, the window refines them
+        if self.dead_reckoning:  # keyframe poses are off: accept rougher points, the window refines them
             f = self.cfg.lost_reproj_factor
             tcfg = dataclasses.replace(
                 tcfg,
@@ -538,9 +545,9 @@ class SlamSystem:
     def _map_reuse(self, kf: Keyframe, image: np.ndarray) -> None:
         """Relocalise after a long loss (when one is pending), else re-find map points near their projections."""
         c = self.cfg.reloc
-        if self.reloc_pending is not None and not self.lost:
+        if self.reloc_pending is not None and not self.dead_reckoning:
             relocalize_pending(self, kf, image)
-        elif c.enabled and c.guided and not self.lost:
+        elif c.enabled and c.guided and not self.dead_reckoning:
             t_ids = self.reloc.guided_match(kf, image)
             for j in t_ids:
                 self.track_obs.pop(int(j), None)

@@ -83,7 +83,7 @@ class SlamConfig:
     still_window_s: float = 0.25  # s of IMU samples for the rest test (several of init.block_s)
     still_gyro_rad_s: float = 0.02  # |mean gyro - bias| bound for rest
     still_accel_m_s2: float = 0.3  # | |mean f| - g | and block-mean spread bound for rest
-    lost_min_landmarks: int = 6  # fewer tracked landmarks: visual tracking lost, coasting on the IMU
+    lost_min_landmarks: int = 6  # fewer tracked landmarks (once as many were tracked): visual tracking lost
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
@@ -161,6 +161,12 @@ class SlamSystem:
         self._reset_state()
 
     @property
+    def dead_reckoning(self) -> bool:
+        """Keyframe poses come from the IMU alone: visual tracking lost, or not yet acquired while the map holds its
+        first landmarks (looser triangulation and sparser keyframes then, as while lost)."""
+        return self.lost or self.building
+
+    @property
     def map(self):
         """The shared map state (:class:`runtime.backend.state.MapState`)."""
         return self.backend.map
@@ -177,6 +183,8 @@ class SlamSystem:
         self.last_kf_feats: FrameFeatures | None = None
         self.still_since_kf = True
         self.lost = False
+        self.acquired = False  # visual tracking held (lost_min_landmarks tracked) since the (re)initialisation
+        self.building = False  # not acquired yet, the map has its first landmarks
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
         self.coast_warned = False
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
@@ -322,9 +330,18 @@ class SlamSystem:
         return T_cur, feats, n_lm
 
     def _update_lost(self, ts: int, n_lm: int) -> None:
-        """Visual tracking lost (too few landmarks tracked) or regained; a long loss asks for relocalisation."""
+        """Visual tracking acquired, lost (too few landmarks tracked) or regained; a long loss asks for relocalisation.
+        Lost only once acquired: after a static start the map's first landmarks come as the parallax grows."""
         c = self.cfg
-        if n_lm < c.lost_min_landmarks and not self.lost and self.map.n_landmarks:
+        if not self.acquired:
+            if n_lm >= c.lost_min_landmarks:
+                self.acquired = True
+                after = ns_to_s(ts) - self.init_info["t_s"] if self.init_info else 0.0
+                msg = f"visual tracking acquired ({n_lm} landmarks) {after:.2f} s after initialisation"
+                self.event(ts, msg, logging.INFO)
+            self.building = not self.acquired and (self.building or self.map.n_landmarks > 0)
+            return
+        if n_lm < c.lost_min_landmarks and not self.lost:
             self.lost, self.lost_since, self.coast_warned = True, ts, False
             self.event(ts, f"visual tracking lost ({n_lm} landmarks tracked): coasting on the IMU")
         elif self.lost and n_lm < c.lost_min_landmarks and not self.coast_warned and ts - self.lost_since >= s_to_ns(3):
@@ -352,7 +369,7 @@ class SlamSystem:
         R_ccur_ckf = self.T_c_b[:3, :3] @ T_cur[:3, :3].T @ kf.T_w_b[:3, :3] @ self.T_b_c[:3, :3]
         par = rotation_compensated_parallax(lk.xn[i_kf], feats.xn[i_cur], R_ccur_ckf, self.camera.fx)
         parallax = float(np.median(par)) if par.size else 0.0
-        if self.lost and ns_to_s(ts - kf.ts) < c.lost_min_kf_interval_s:
+        if self.dead_reckoning and ns_to_s(ts - kf.ts) < c.lost_min_kf_interval_s:
             is_kf, why = False, ""
         else:
             is_kf, why = self.selector.decide(
@@ -456,7 +473,7 @@ class SlamSystem:
                 xn[i, v] = self.track_obs[j][k][0]
                 mask[i, v] = True
         tcfg = base = self.cfg.triangulation
-        if self.lost:  # dead-reckoned keyframe poses are off: accept rougher points, the window refines them
+        if self.dead_reckoning:  # keyframe poses are off: accept rougher points, the window refines them
             f = self.cfg.lost_reproj_factor
             tcfg = dataclasses.replace(
                 tcfg,
@@ -528,9 +545,9 @@ class SlamSystem:
     def _map_reuse(self, kf: Keyframe, image: np.ndarray) -> None:
         """Relocalise after a long loss (when one is pending), else re-find map points near their projections."""
         c = self.cfg.reloc
-        if self.reloc_pending is not None and not self.lost:
+        if self.reloc_pending is not None and not self.dead_reckoning:
             relocalize_pending(self, kf, image)
-        elif c.enabled and c.guided and not self.lost:
+        elif c.enabled and c.guided and not self.dead_reckoning:
             t_ids = self.reloc.guided_match(kf, image)
             for j in t_ids:
                 self.track_obs.pop(int(j), None)

@@ -143,7 +143,8 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     )
     backfill_records(system, moved, kf_ids)
     system.last_kf_feats = feats
-    system.lost, system.restart_until, system.reloc_pending = False, None, None
+    system.lost, system.acquired, system.building = False, False, False
+    system.restart_until, system.reloc_pending = None, None
     run.reset()
     system.restarts.append({"t_s": round(ns_to_s(ts), 4), "why": "after a start turning in place", **st.info})
     system.event(ts, f"re-initialised in motion after the start turning in place, same map frame: {st.info}")

@@ -107,6 +107,19 @@ def test_textureless_period_coasts_on_imu_and_recovers():
     assert ate(system, m)["ate_se3_rmse_m"] < 0.1
 
 
+def test_a_slow_start_after_rest_builds_the_map_without_a_false_loss():
+    """After a static start the map is empty and its first landmarks come one triangulation at a time as the
+    parallax grows (here 1-2, then ~100 a keyframe later): tracking is acquired then, it was never lost."""
+    system, m = run(6.0, motion=Motion(seed=0, t_ramp=3.0))
+    assert system.init_info["method"] == "static"
+    msgs = [msg for _, msg in system.events]
+    assert not any("visual tracking lost" in s for s in msgs), msgs
+    assert sum("visual tracking acquired" in s for s in msgs) == 1, msgs
+    assert "coasting" not in {r.status for r in system.records}
+    assert len(system.map.all_points()[0]) > 50  # the map was built
+    assert ate(system, m)["ate_se3_rmse_m"] < 0.02
+
+
 def test_imu_nan_and_gaps_keep_the_run_going(caplog):
     with caplog.at_level(logging.WARNING):
         system, m = run(10.0, nan_rows=(900, 901, 1300), gap=(6.0, 6.08))

@@ -31,7 +31,6 @@ class LinearizedDepth:
         self.c0: np.ndarray | None = None
         self.D0: np.ndarray | None = None
         self.J0: np.ndarray | None = None
-        self._last: tuple[bytes, np.ndarray] | None = None  # the last expansion: (code offset, depth)
         self.n_relin = 0
 
     def _relin(self, code: np.ndarray) -> None:
@@ -39,21 +38,14 @@ class LinearizedDepth:
         self.D0 = self.D0.astype(np.float64)
         self.J0 = self.J0.astype(np.float64)
         self.c0 = np.asarray(code, np.float32).astype(np.float64)
-        self._last = None
         self.n_relin += 1
 
     def jacobian(self, code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth (H, W) and ``dD/dc`` (H, W, C) of the expansion at ``code`` (exact at the linearisation point;
-        the first call before any :meth:`relinearize` linearises at ``code``)."""
-        if self.c0 is None:
-            self._relin(code)
-        dc = np.asarray(code, np.float64) - self.c0
-        if not dc.any():
-            return self.D0, self.J0
-        key = dc.tobytes()
-        if self._last is None or self._last[0] != key:  # the factors of one keyframe ask at the same code
-            self._last = (key, self.D0 + self.J0 @ dc)
-        return self._last[1], self.J0
+        """Depth (H, W) and ``dD/dc`` (H, W, C) of the expansion at ``code``, the whole map (exact at the
+        linearisation point; the first call before any :meth:`relinearize` linearises at ``code``). The factors
+        use :meth:`expansion` instead, which forms no map."""
+        e = self.expansion(code)
+        return (self.D0 if e.dc is None else self.D0 + self.J0 @ e.dc), self.J0
 
     def depth(self, code: np.ndarray) -> np.ndarray:
         return self.jacobian(code)[0]

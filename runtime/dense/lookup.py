@@ -134,12 +134,17 @@ class MapExpansion:
                 raise ValueError("a code offset needs the code Jacobian J0")
             self.dc = np.asarray(dc, dtype=np.float64)
 
+    def _gather(self, flat: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """``D0`` (M,) and, when asked, the rows of ``J0`` (M, C) at flat pixel indices (M,), as float64."""
+        d0 = self._D0.take(flat).astype(np.float64, copy=False)
+        j0 = self._J0.take(flat, axis=0).astype(np.float64, copy=False) if jacobian else None
+        return d0, j0
+
     def at(self, idx: np.ndarray) -> np.ndarray:
         """Depth [m] at flat pixel indices ``idx`` (any shape) of the (H, W) map."""
-        flat = np.asarray(idx).reshape(-1)
-        d = self._D0.take(flat).astype(np.float64, copy=False)
-        if self.dc is not None:  # gather rows, then one matrix-vector product (not a stack of small ones)
-            d += self._J0.take(flat, axis=0) @ self.dc
+        d, j0 = self._gather(np.asarray(idx).reshape(-1), self.dc is not None)
+        if self.dc is not None:  # gathered rows, then one matrix-vector product (not a stack of small ones)
+            d = d + j0 @ self.dc
         return d.reshape(np.shape(idx))
 
     def _check(self, lookup: Bilinear) -> None:
@@ -152,13 +157,9 @@ class MapExpansion:
         self._check(lookup)
         memo = lookup.memo
         if memo is None or memo[0] is not self.D0 or memo[1] is not self.J0:
-            flat = lookup.idx.reshape(-1)
-            d0 = lookup.interp(self._D0.take(flat).astype(np.float64, copy=False).reshape(lookup.idx.shape))
-            j0 = None
-            if self._J0 is not None:
-                j0 = lookup.interp(
-                    self._J0.take(flat, axis=0).astype(np.float64, copy=False).reshape(*lookup.idx.shape, -1)
-                )
+            d0, j0 = self._gather(lookup.idx.reshape(-1), self._J0 is not None)
+            d0 = lookup.interp(d0.reshape(lookup.idx.shape))
+            j0 = None if j0 is None else lookup.interp(j0.reshape(*lookup.idx.shape, -1))
             memo = lookup.memo = (self.D0, self.J0, d0, j0)
         return memo[2], memo[3]
 

@@ -49,7 +49,7 @@ class BackendConfig:
     window_size: int = 10  # active keyframes (full X, V, B states)
     anchor_old_observations: bool = True  # keep observations of keyframes that left, poses held fixed
     max_anchor_keyframes: int = 15
-    anchor_sigma: float = 1e-4  # rad and m: how firmly anchored poses are held
+    anchor_sigma: float = 3e-3  # rad and m: how firmly anchored poses are held (1e-4 froze the metric scale)
     pixel_sigma: float = 1.0  # px, reprojection noise
     huber_k: float = 1.5  # Huber threshold in sigmas
     lm_max_iterations: int = 8

@@ -62,7 +62,7 @@ class DynamicInitConfig:
     max_residual_m: float = 0.05  # RMS position residual of the alignment
     min_depth_m: float = 0.2  # median depth of the scaled structure (closer: corrupt tracks or a wrong scale)
     ba_iterations: int = 15
-    hover_max_px: float = 2.0  # rotation-only fit residual below this over the window: turning in place
+    hover_max_px: float = 3.0  # rotation-only fit residual below this over the window: turning in place
     try_every_s: float = 0.1  # s between attempts
     backfill_s: float = 1.0  # frames before the start window get IMU poses this far back (0.1 m/s^2: 5 cm)
     refine_within_s: float = 10.0  # after a start turning in place, re-initialise in motion within this time

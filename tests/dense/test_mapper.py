@@ -86,7 +86,7 @@ def runs(seq8, tmp_path_factory):
     DepthNetwork.decode = spy
     runtime.dense.DenseMapper = InterfaceOnlyMapper
     try:
-        cfg = DenseConfig(n_consis=200, start_after_s=2.0)
+        cfg = DenseConfig(use_depth_residual=True, n_consis=200, start_after_s=2.0)
         m_dense = run_sequence(read_euroc(seq8), dense_out, dense=cfg, progress=False, plot=False)
     finally:
         DepthNetwork.decode = orig

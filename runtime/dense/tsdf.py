@@ -39,13 +39,13 @@ Measured (``tests/dense/test_tsdf.py``; ``benchmarks/bench_dense_map.py``, ``ben
   0.07 voxel on average (95 % within 0.2 voxel, the worst at the rim of the seen band, seen only at grazing angles);
 * exact depth: the rendered depth at ``dit-slam``'s keyframe poses gives a mesh with accuracy 0.98-1.00 and
   completeness 0.93-0.98 (synthetic ``handheld``, ``textured``); the recorded depth of ``rgbd_real`` at its
-  poses 0.99-1.00 and 0.71-0.76 (SUN3D) or 0.48 (``realsense_box``: a speckled depth, holes leave cells with an
+  poses 0.99-1.00 and 0.71-0.76 (SUN3D) or 0.46 (``realsense_box``: a speckled depth, holes leave cells with an
   unobserved corner);
-* the network's depth: ``dit-slam``'s ``dense_mesh.ply`` reaches accuracy 0.09-0.28 and completeness 0.20-0.36,
+* the network's depth: ``dit-slam``'s ``dense_mesh.ply`` reaches accuracy 0.09-0.27 and completeness 0.21-0.36,
   below its point map (0.18-0.33, 0.63-0.83): keyframes' depth errors (RMSE 0.1-0.2 m) exceed the truncation, so
   their surfaces do not average into one; ``1 / B^2`` against uniform weights changes the real rows by < 0.01;
-* cost at 128 x 128: 5-47 ms a keyframe (the benchmark), 57-129 ms on ``dit-slam``'s network thread on a loaded
-  2-core machine; extracting the mesh 0.1-1.8 s at the end of a run; 2-8 MB of blocks for a 30 s run.
+* cost at 128 x 128: 13-67 ms a keyframe in the benchmark, 69-116 ms on ``dit-slam``'s network thread (a loaded
+  2-core machine); extracting the mesh 0.4-2.6 s at the end of a 30 s run; 1.3-6.4 MB of blocks for a 30 s run.
 
 This module never imports torch.
 """

@@ -145,8 +145,14 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"prior c=0 {dm['prior']['rmse']:.3f}, optimised code {dm['optimised']['rmse']:.3f}"
         )
     if dense:
-        dense_files = ", ".join(n for n in ("dense_map.ply", "dense_map.png", "keyframe_depth/") if (out / n).exists())
-        lines.append(f"  dense map: {m.get('dense_map_points', 0)} points; wrote {out}/{{{dense_files}}}")
+        names = ("dense_map.ply", "dense_map.png", "dense_mesh.ply", "keyframe_depth/")
+        dense_files = ", ".join(n for n in names if (out / n).exists())
+        mesh = (
+            f", mesh {m['dense_mesh_vertices']} vertices {m['dense_mesh_faces']} faces"
+            if "dense_mesh_faces" in m
+            else ""
+        )
+        lines.append(f"  dense map: {m.get('dense_map_points', 0)} points{mesh}; wrote {out}/{{{dense_files}}}")
     names = ("trajectory.txt", "keyframes.txt", "sparse_map.ply", "metrics.json", "trajectory_top.png", "slam.rrd")
     lines.append(f"  wrote {out}/{{{', '.join(n for n in names if (out / n).exists())}}}")
     return "\n".join(lines)

@@ -6,6 +6,10 @@ ground-truth points within 5 cm of the map; k-d trees both ways; the ground-trut
 ``--gt-voxel`` (2 cm). The ground truth covers the network's field of view only (the centre crop the network
 sees, :class:`runtime.geometry.NetworkMapping`), so the crop does not count as incompleteness.
 
+Mesh rows (:mod:`runtime.dense.tsdf`): the surface of a TSDF (``DenseMapConfig.tsdf_voxel``, ``tsdf_trunc``) is
+scored by points sampled uniformly on its triangles (:func:`runtime.dense.tsdf.sample_mesh`, one per
+``--mesh-spacing`` squared, 1 cm), so a large triangle counts by its area; the ground truth is the same.
+
 Two kinds of ``--seq``:
 
 * **synthetic** (a rendered EuRoC-layout sequence with ``mav0/depth0``): the ``dense_map.ply`` of a
@@ -16,7 +20,8 @@ Two kinds of ``--seq``:
   (``evo`` ``align(correct_scale=False)`` of ``trajectory.txt`` against the ground truth at the estimate's
   timestamps, as :func:`runtime.eval.trajectory_metrics`). Rows ``>= k keyframes``: the voxels the PLY's
   ``keyframes`` property says were seen by k keyframes or more. Reference row: the same fusion fed the rendered depth
-  at the SLAM keyframe poses (aligned), i.e. the map's error due to the poses alone.
+  at the SLAM keyframe poses (aligned), i.e. the map's error due to the poses alone. Mesh rows: the output's
+  ``dense_mesh.ply`` (aligned the same way) and the TSDF of the same rendered depth at the same poses.
 * **real** (an ``rgbd_real`` frame folder, :mod:`runtime.io.rgbd_frames`, with its poses): every frame is a
   keyframe at its recorded pose. Rows: the fusion fed (a) the depth network's prior (``--model``, default the
   shipped model; input as the G-S protocol of ``dit-eval depth real=...``: network-resolution image and the true
@@ -26,7 +31,8 @@ Two kinds of ``--seq``:
   the fusion's own upper bound). Ground truth: every frame's full-resolution depth (mm PNG, 0 invalid) inside the
   network's crop, back-projected with the recorded poses. Accuracy counts every map point, also those where the
   sensor has no depth (beyond its range): a fill there (interpolation, network) is scored as inaccurate.
-  Rows ``>= 2 keyframes`` keep only voxels seen by two keyframes or more (``VoxelMap.points(2)``).
+  Rows ``>= 2 keyframes`` keep only voxels seen by two keyframes or more (``VoxelMap.points(2)``). Mesh rows:
+  the same depth maps with the same weights and filter integrated into a TSDF, its surface.
 
 Usage::
 
@@ -54,12 +60,20 @@ from benchmarks.common import markdown_table, slam_machine, write_json  # noqa: 
 from runtime.dense.config import DenseMapConfig  # noqa: E402
 from runtime.dense.fusion import VoxelMap, surface_metrics  # noqa: E402
 from runtime.dense.map import backproject, gt_depth_to_network, voxel_downsample  # noqa: E402
+from runtime.dense.tsdf import TsdfVolume, sample_mesh  # noqa: E402
 
 COLUMNS = ["map", "points", "accuracy", "acc mean [m]", "acc median [m]", "completeness", "comp mean [m]"]
 
 
 def _row(name: str, m: dict) -> list:
     return [name, m["n_map"], m["accuracy"], m["acc_mean_m"], m["acc_median_m"], m["completeness"], m["comp_mean_m"]]
+
+
+def _mesh_metrics(v: np.ndarray, f: np.ndarray, gt_xyz: np.ndarray, args) -> dict:
+    """:func:`surface_metrics` of points sampled on a mesh's triangles, with the mesh's size."""
+    m = surface_metrics(sample_mesh(v, f, args.mesh_spacing), gt_xyz, args.threshold)
+    m.update(mesh_vertices=int(len(v)), mesh_faces=int(len(f)))
+    return m
 
 
 # ------------------------------------------------------------------------------------------------ synthetic
@@ -87,7 +101,7 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
     from runtime.dense import DenseConfig
     from runtime.geometry import NetworkMapping, make_T
     from runtime.io.euroc import read_euroc
-    from runtime.io.ply import read_ply_vertex
+    from runtime.io.ply import read_ply_faces, read_ply_vertex
     from runtime.io.tum import read_tum
     from runtime.network import DepthNetwork, default_model_dir
 
@@ -107,6 +121,7 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
     A = make_T(R, t)
     kts, kT = read_tum(slam_out / "keyframes.txt")
     gt_pts, ref_map, t_fuse = [], VoxelMap(DenseMapConfig().voxel), 0.0
+    ref_tsdf, t_tsdf = TsdfVolume.from_config(DenseMapConfig()), 0.0
     for j, ts in enumerate(kts):
         i = int(np.argmin(np.abs(seq.frame_ts - ts)))
         g = gt_depth_to_network(seq.depth(i), seq.camera, mapping)
@@ -115,7 +130,9 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
         gt_pts.append(p @ T_w_c[:3, :3].T + T_w_c[:3, 3])
         t0 = time.perf_counter()
         ref_map.integrate(j, g, A @ kT[j] @ seq.T_b_c, net_cam, cfg=DenseMapConfig())
-        t_fuse += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        ref_tsdf.integrate(j, g, A @ kT[j] @ seq.T_b_c, net_cam, cfg=DenseMapConfig())
+        t_fuse, t_tsdf = t_fuse + t1 - t0, t_tsdf + time.perf_counter() - t1
     gt_xyz, _ = voxel_downsample(np.concatenate(gt_pts), args.gt_voxel)
     v = read_ply_vertex(slam_out / "dense_map.ply")
     xyz = np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float64) @ R.T + t
@@ -126,6 +143,15 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
         rows[name] = surface_metrics(xyz[support >= k], gt_xyz, args.threshold)
     ref = ref_map.points()[0]
     rows["rendered depth fused at the SLAM keyframe poses"] = surface_metrics(ref, gt_xyz, args.threshold)
+    mesh_path = slam_out / "dense_mesh.ply"
+    if mesh_path.is_file():
+        v = read_ply_vertex(mesh_path)
+        mv = np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float64) @ R.T + t
+        rows["dit-slam dense_mesh.ply (SE(3)-aligned)"] = _mesh_metrics(mv, read_ply_faces(mesh_path), gt_xyz, args)
+    t0 = time.perf_counter()
+    rv, rf, _, _ = ref_tsdf.mesh()
+    t_mesh = time.perf_counter() - t0
+    rows["TSDF mesh of the rendered depth at the SLAM keyframe poses"] = _mesh_metrics(rv, rf, gt_xyz, args)
     return {
         "kind": "synthetic",
         "slam_out": str(slam_out),
@@ -133,6 +159,10 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
         "ate_se3_rmse_m": ate,
         "fusion_ms_per_keyframe": 1e3 * t_fuse / max(len(kts), 1),
         "fused_voxels": len(ref_map),
+        "tsdf_ms_per_keyframe": 1e3 * t_tsdf / max(len(kts), 1),
+        "tsdf_blocks": ref_tsdf.n_blocks,
+        "tsdf_mb": ref_tsdf.nbytes / 1e6,
+        "mesh_extraction_s": t_mesh,
         "gt_points": int(len(gt_xyz)),
         "rows": rows,
     }
@@ -155,7 +185,9 @@ def eval_real(folder: Path, args) -> dict:
     maps["network_unweighted"] = VoxelMap(cfg.voxel, min_uncertainty=1e3)  # every B clamped to 1 km: equal weights
     maps["network_unfiltered"] = VoxelMap(cfg.voxel)
     no_filter = DenseMapConfig(max_uncertainty=None, max_rel_uncertainty=None)
-    gt_pts = []
+    tsdfs = {k: TsdfVolume.from_config(cfg) for k in ("network", "interp", "gt")}
+    tsdfs["network_unweighted"] = TsdfVolume(cfg.tsdf_voxel, cfg.tsdf_trunc, min_uncertainty=1e3)
+    t_tsdf, gt_pts = 0.0, []
     code = np.zeros(net.code_dim, np.float32)
     t0 = time.perf_counter()
     for i in range(len(frames)):
@@ -179,6 +211,12 @@ def eval_real(folder: Path, args) -> dict:
         maps["network_unfiltered"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, no_filter)
         maps["interp"].integrate(i, interpolate_sparse(sparse), T_w_c, net_cam, None, colour, cfg)
         maps["gt"].integrate(i, x["depth"][0], T_w_c, net_cam, None, colour, cfg)
+        t1 = time.perf_counter()
+        tsdfs["network"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, cfg)
+        t_tsdf += time.perf_counter() - t1
+        tsdfs["network_unweighted"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, cfg)
+        tsdfs["interp"].integrate(i, interpolate_sparse(sparse), T_w_c, net_cam, None, colour, cfg)
+        tsdfs["gt"].integrate(i, x["depth"][0], T_w_c, net_cam, None, colour, cfg)
         # ground truth: the full-resolution depth inside the network's crop
         uv_all = np.stack(np.meshgrid(np.arange(W), np.arange(H)), -1).reshape(-1, 2).astype(np.float64)
         uvn = mapping.points_to_network(uv_all)
@@ -200,13 +238,21 @@ def eval_real(folder: Path, args) -> dict:
         for k, m in maps.items()
         if k in ("network", "interp")
     }
+    t0 = time.perf_counter()
+    meshes = {k: vol.mesh() for k, vol in tsdfs.items()}
+    t_mesh = (time.perf_counter() - t0) / len(meshes)
+    rows_mesh = {"TSDF mesh: " + names[k]: _mesh_metrics(m[0], m[1], gt_xyz, args) for k, m in meshes.items()}
     return {
         "kind": "real",
         "frames": len(frames),
+        "tsdf_ms_per_keyframe": 1e3 * t_tsdf / max(len(frames), 1),
+        "tsdf_blocks": tsdfs["network"].n_blocks,
+        "tsdf_mb": tsdfs["network"].nbytes / 1e6,
+        "mesh_extraction_s": t_mesh,
         "gt_points": int(len(gt_xyz)),
         "seconds": seconds,
         "network": f"{net.modality} {net.width}x{net.height}",
-        "rows": {**rows, **rows_2},
+        "rows": {**rows, **rows_2, **rows_mesh},
     }
 
 
@@ -220,6 +266,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=None, help="first N frames of a real folder (default: all)")
     ap.add_argument("--threshold", type=float, default=0.05, help="distance of accuracy / completeness [m]")
     ap.add_argument("--gt-voxel", type=float, default=0.02, help="voxel of the ground-truth cloud [m]")
+    ap.add_argument("--mesh-spacing", type=float, default=0.01, help="spacing of the points sampled on a mesh [m]")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "dense_map.json"))
     args = ap.parse_args(argv)
     results = {}
@@ -242,6 +289,9 @@ def main(argv: list[str] | None = None) -> dict:
         "threshold_m": args.threshold,
         "gt_voxel_m": args.gt_voxel,
         "map_voxel_m": DenseMapConfig().voxel,
+        "tsdf_voxel_m": DenseMapConfig().tsdf_voxel,
+        "tsdf_trunc_m": DenseMapConfig().tsdf_trunc,
+        "mesh_spacing_m": args.mesh_spacing,
         "machine": slam_machine(),
         "sequences": results,
         "command": "python benchmarks/bench_dense_map.py " + " ".join(argv if argv is not None else sys.argv[1:]),

@@ -540,7 +540,9 @@ def _dense_map() -> list[str]:
         "`dit-slam`'s `dense_map.ply`, SE(3)-aligned to the ground truth as the ATE, against the rendered depth of "
         "its keyframes; real (`../shared/data/rgbd_real`): the network's prior (125 FAST points of true depth, "
         "the G-S protocol) fused at the recorded poses, against the recorded depth; the rows below the first "
-        "fuse the interpolated sparse points or the true depth with the same fusion:",
+        "fuse the interpolated sparse points or the true depth with the same fusion. Mesh rows: the surface of the "
+        "TSDF of the same depth maps (`dense_mesh.ply`, `runtime/dense/tsdf.py`), scored by points sampled "
+        "uniformly on its triangles (the points column counts them):",
         "",
         _table(["sequence", "map", "points", "accuracy", "acc. median", "completeness", "compl. median"], body),
         "",

@@ -74,6 +74,10 @@ class DenseMapConfig:
         stride: back-project every ``stride``-th pixel in u and v (1: all).
         voxel: voxel edge [m] of the downsampling (0: none) and of the fused map
             (:class:`runtime.dense.fusion.VoxelMap`; 0 there: 1 cm).
+        mesh: also fuse the keyframes into a TSDF (:class:`runtime.dense.tsdf.TsdfVolume`, same filter and
+            ``1 / B^2`` weights) and write its surface as ``dense_mesh.ply``.
+        tsdf_voxel: voxel edge [m] of the TSDF.
+        tsdf_trunc: truncation distance [m] of the TSDF (> ``tsdf_voxel``).
     """
 
     max_uncertainty: float | None = None
@@ -82,8 +86,15 @@ class DenseMapConfig:
     max_depth: float = 10.0
     stride: int = 1
     voxel: float = 0.02
+    mesh: bool = True
+    tsdf_voxel: float = 0.04
+    tsdf_trunc: float = 0.12
 
     def __post_init__(self) -> None:
+        if not self.tsdf_voxel > 0:
+            raise ValueError(f"tsdf_voxel={self.tsdf_voxel}: must be > 0")
+        if not self.tsdf_trunc > self.tsdf_voxel:
+            raise ValueError(f"tsdf_trunc={self.tsdf_trunc}: must be > tsdf_voxel={self.tsdf_voxel}")
         if self.stride < 1:
             raise ValueError(f"stride={self.stride}: must be >= 1")
         if self.voxel < 0:

@@ -24,7 +24,7 @@ from runtime.io.euroc import (
     read_imu_yaml,
 )
 from runtime.io.nyu import NYU_HW, NyuFormatError, NyuLabeledMat, list_nyu_h5, read_nyu_h5, read_nyu_split
-from runtime.io.ply import PlyFormatError, read_ply, read_ply_normals, read_ply_vertex, write_ply
+from runtime.io.ply import PlyFormatError, read_ply, read_ply_faces, read_ply_normals, read_ply_vertex, write_ply
 from runtime.io.sequence import PinholeView, open_sequence
 from runtime.io.tum import TumFormatError, read_tum, write_tum
 
@@ -60,6 +60,7 @@ __all__ = [
     "read_nyu_split",
     "PlyFormatError",
     "read_ply",
+    "read_ply_faces",
     "read_ply_normals",
     "read_ply_vertex",
     "write_ply",

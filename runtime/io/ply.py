@@ -1,8 +1,10 @@
-"""PLY point clouds: binary little-endian writer (float32 x, y, z + optional float32 nx, ny, nz normals +
-optional uchar red, green, blue) and a reader for ``ascii``, ``binary_little_endian`` and ``binary_big_endian``
-vertex data (MeshLab, CloudCompare, Open3D); :func:`read_ply_normals` reads the normals.
+"""PLY point clouds and triangle meshes: binary little-endian writer (float32 x, y, z + optional float32 nx, ny,
+nz normals + optional uchar red, green, blue, + optional triangles ``face`` ``list uchar int vertex_indices``)
+and a reader for ``ascii``, ``binary_little_endian`` and ``binary_big_endian`` vertex data (MeshLab,
+CloudCompare, Open3D); :func:`read_ply_normals` reads the normals, :func:`read_ply_faces` the triangles.
 
-Other elements (e.g. ``face``) after ``vertex`` are ignored; fixed-size elements before it are skipped.
+:func:`read_ply` and :func:`read_ply_vertex` ignore other elements (e.g. ``face``) after ``vertex``; fixed-size
+elements before it are skipped.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PlyFormatError", "write_ply", "read_ply", "read_ply_normals", "read_ply_vertex"]
+__all__ = ["PlyFormatError", "write_ply", "read_ply", "read_ply_normals", "read_ply_vertex", "read_ply_faces"]
 
 # PLY scalar types -> numpy (both the classic and the sized names)
 _TYPES = {
@@ -47,8 +49,9 @@ def write_ply(
     rgb: np.ndarray | None = None,
     normals: np.ndarray | None = None,
     scalars: dict[str, np.ndarray] | None = None,
+    faces: np.ndarray | None = None,
 ) -> Path:
-    """Write a point cloud as binary little-endian PLY.
+    """Write a point cloud (or, with ``faces``, a triangle mesh) as binary little-endian PLY.
 
     Args:
         path: output file (parent folders are created).
@@ -57,12 +60,14 @@ def write_ply(
         normals: optional (N, 3) normals (``nx ny nz``, float32), all finite (zero = none).
         scalars: optional further per-vertex properties, name -> (N,) array of uint8, uint16, int32 or float32
             (written after the colours; :func:`read_ply_vertex` reads them).
+        faces: optional (F, 3) vertex indices of triangles (``element face``, ``list uchar int``), each in
+            ``[0, N)``; :func:`read_ply_faces` reads them.
 
     Returns:
         The path written.
 
     Raises:
-        ValueError: bad shape, non-finite points, or colours that are not uint8.
+        ValueError: bad shape, non-finite points, colours that are not uint8, or face indices out of range.
     """
     path = Path(path)
     xyz = np.asarray(xyz)
@@ -72,9 +77,7 @@ def write_ply(
         raise ValueError(f"xyz must be numeric, got dtype {xyz.dtype}")
     finite = np.isfinite(xyz).all(axis=1)
     if not finite.all():
-        raise ValueError(
-            f"xyz has {int((~finite).sum())} non-finite points (first at index {np.argmin(finite)})"
-        )
+        raise ValueError(f"xyz has {int((~finite).sum())} non-finite points (first at index {np.argmin(finite)})")
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if normals is not None:
         normals = np.asarray(normals)
@@ -110,12 +113,29 @@ def write_ply(
     if rgb is not None:
         header += ["property uchar red", "property uchar green", "property uchar blue"]
     header += [f"property {_SCALAR_TYPES[v.dtype.str.lstrip('<|')]} {k}" for k, v in scalars.items()]
+    tri = None if faces is None else _face_records(faces, len(xyz))
+    if tri is not None:
+        header += [f"element face {len(tri)}", "property list uchar int vertex_indices"]
     header.append("end_header")
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(arr.tobytes())
+        if tri is not None:
+            f.write(tri.tobytes())
     return path
+
+
+def _face_records(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Checked triangles (F, 3) as PLY ``list uchar int`` records (count 3, then the indices)."""
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces must be (F, 3) integers, got {f.dtype} {f.shape}")
+    if f.size and (f.min() < 0 or f.max() >= n_vertices):
+        raise ValueError(f"faces index vertices {f.min()}..{f.max()}, but there are {n_vertices}")
+    rec = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    rec["n"], rec["i"] = 3, f
+    return rec
 
 
 def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list]]]:
@@ -211,9 +231,7 @@ def _read_vertices(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
             dtype = np.dtype([(p, order + t) for p, t in props])
             buf = f.read(n * dtype.itemsize)
             if len(buf) < n * dtype.itemsize:
-                raise PlyFormatError(
-                    f"{path}: truncated vertex data ({len(buf)} of {n * dtype.itemsize} bytes)"
-                )
+                raise PlyFormatError(f"{path}: truncated vertex data ({len(buf)} of {n * dtype.itemsize} bytes)")
             arr = np.frombuffer(buf, dtype=dtype, count=n)
             cols = {p: arr[p] for p in pnames}
             types = dict(props)
@@ -256,3 +274,51 @@ def read_ply_normals(path: str | Path) -> np.ndarray | None:
     if not all(c in cols for c in ("nx", "ny", "nz")):
         return None
     return np.stack([cols["nx"], cols["ny"], cols["nz"]], -1).astype(np.float64)
+
+
+def read_ply_faces(path: str | Path) -> np.ndarray:
+    """The triangles (F, 3) int64 of a PLY file's ``face`` element (``vertex_indices`` or ``vertex_index``), or
+    an empty (0, 3) array when it has none.
+
+    Raises:
+        PlyFormatError: as :func:`read_ply`; a face that is not a triangle, or elements after ``vertex`` with
+            list properties before ``face`` (binary).
+    """
+    path = Path(path)
+    cols, _ = _read_vertices(path)  # checks the file and its vertex element
+    n_vert = len(cols["x"])
+    with open(path, "rb") as f:
+        fmt, elements = _parse_header(path, f)
+        names = [e[0] for e in elements]
+        if "face" not in names:
+            return np.zeros((0, 3), np.int64)
+        fi = names.index("face")
+        _, n, props = elements[fi]
+        lists = [(p, t) for p, t in props if isinstance(t, tuple)]
+        if len(props) != 1 or not lists or lists[0][0] not in ("vertex_indices", "vertex_index"):
+            raise PlyFormatError(f"{path}: face element must hold only a vertex_indices list, has {props}")
+        _, ctype, itype = lists[0][1]
+        if fmt == "ascii":
+            skip = sum(count for _, count, _ in elements[:fi])
+            lines = [ln for ln in f.read().decode("ascii", errors="replace").splitlines() if ln.strip()]
+            rows = [ln.split() for ln in lines[skip : skip + n]]
+            if len(rows) < n or any(len(r) != 4 or r[0] != "3" for r in rows):
+                raise PlyFormatError(f"{path}: expected {n} triangle lines ('3 i j k')")
+            tri = np.array([[int(x) for x in r[1:]] for r in rows], np.int64).reshape(-1, 3)
+        else:
+            order = "<" if fmt == "binary_little_endian" else ">"
+            for name, count, eprops in elements[:fi]:
+                if any(isinstance(t, tuple) for _, t in eprops):
+                    raise PlyFormatError(f"{path}: element '{name}' with list properties before 'face'")
+                f.seek(count * np.dtype([(p, order + t) for p, t in eprops]).itemsize, 1)
+            dtype = np.dtype([("n", order + ctype), ("i", order + itype, (3,))])
+            buf = f.read(n * dtype.itemsize)
+            if len(buf) < n * dtype.itemsize:
+                raise PlyFormatError(f"{path}: truncated face data ({len(buf)} of {n * dtype.itemsize} bytes)")
+            rec = np.frombuffer(buf, dtype=dtype, count=n)
+            if (rec["n"] != 3).any():
+                raise PlyFormatError(f"{path}: only triangles are supported (a face has {rec['n'].max()} vertices)")
+            tri = rec["i"].astype(np.int64).reshape(-1, 3)
+    if tri.size and (tri.min() < 0 or tri.max() >= n_vert):
+        raise PlyFormatError(f"{path}: face indices {tri.min()}..{tri.max()} outside the {n_vert} vertices")
+    return tri

@@ -10,6 +10,7 @@ import pytest
 from benchmarks import bench_dense_map
 from runtime.dense.fusion import VoxelMap, write_fused_map
 from runtime.dense.map import gt_depth_to_network
+from runtime.dense.tsdf import TsdfVolume, write_mesh_ply
 from runtime.geometry import NetworkMapping, make_T, so3_exp
 from runtime.io.euroc import read_euroc
 from runtime.io.tum import write_tum
@@ -37,7 +38,9 @@ def test_real_folder_true_depth_row_is_exact(tmp_path, capsys):
     rows = res["rows"]
     gt_row = rows["true depth at network resolution (upper bound)"]
     assert gt_row["accuracy"] == 1.0 and gt_row["completeness"] > 0.95 and gt_row["acc_mean_m"] < 0.01
-    assert res["frames"] == 2 and len(rows) == 7
+    assert res["frames"] == 2 and len(rows) == 11
+    mesh = rows["TSDF mesh: true depth at network resolution (upper bound)"]
+    assert mesh["accuracy"] == 1.0 and mesh["acc_mean_m"] < 0.01 and mesh["mesh_faces"] > 100
     assert "| true depth at network resolution (upper bound) |" in capsys.readouterr().out
 
 
@@ -62,15 +65,20 @@ def test_synthetic_map_is_aligned_like_the_ate(seq, tmp_path):
     write_tum(out / "trajectory.txt", ts, T_est)
     kf = np.arange(0, len(ts), 4)
     write_tum(out / "keyframes.txt", ts[kf], T_est[kf])
-    m = VoxelMap(0.02)
+    m, vol = VoxelMap(0.02), TsdfVolume(0.04)
     for j in kf:
         i = int(np.searchsorted(s.frame_ts, ts[j]))
         g = gt_depth_to_network(s.depth(i), s.camera, mapping)
         m.integrate(int(j), g, T_est[j] @ s.T_b_c, net_cam)
+        vol.integrate(int(j), g, T_est[j] @ s.T_b_c, net_cam)
     write_fused_map(out, *m.points())
+    write_mesh_ply(out, *vol.mesh())
     res = bench_dense_map.main(["--seq", str(seq), "--slam-out", str(out), "--out", str(tmp_path / "r.json")])
     r = res["sequences"][seq.name]
     assert r["ate_se3_rmse_m"] < 1e-6
     aligned = r["rows"]["dit-slam dense_map.ply (SE(3)-aligned)"]
     assert aligned["accuracy"] > 0.99 and aligned["completeness"] > 0.95
     assert r["rows"]["rendered depth fused at the SLAM keyframe poses"]["accuracy"] > 0.99
+    mesh = r["rows"]["dit-slam dense_mesh.ply (SE(3)-aligned)"]
+    assert mesh["accuracy"] > 0.99 and mesh["completeness"] > 0.9 and mesh["mesh_faces"] > 100
+    assert r["rows"]["TSDF mesh of the rendered depth at the SLAM keyframe poses"]["accuracy"] > 0.99

@@ -11,6 +11,7 @@ from runtime.dense import DenseConfig, DenseMapper
 from runtime.dense.config import DenseMapConfig
 from runtime.dense.fusion import FINEST_VOXEL, VoxelMap, depth_normals, surface_metrics, write_fused_map
 from runtime.dense.mapper import _KfDense, _Stats
+from runtime.dense.tsdf import TsdfVolume
 from runtime.geometry import Camera, inv_T
 from runtime.io.ply import read_ply, read_ply_normals, read_ply_vertex
 from tests.dense.fakes import T_B_C, body_pose, network_K, plane_depth
@@ -160,6 +161,7 @@ def _mapper(poses, depth):
     m.T_b_c, m.net_cam, m.net, m.depth_gt, m.probe = T_B_C, CAM, _Net(), None, None
     m.per_kf_metrics, m.stats, m.dense_map, m.timers, m._pool = {}, _Stats(), None, defaultdict(float), None
     m.fused_map = VoxelMap.from_config(m.cfg.map)
+    m.tsdf = TsdfVolume.from_config(m.cfg.map)
     img = np.full((H, W), 200, np.uint8)
     m.kfs = {k: _KfDense(k, k, _done(_Provider(depth)), np.zeros((0, 2)), img, np.zeros(2)) for k in poses}
     return m

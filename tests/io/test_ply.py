@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from runtime.io import PlyFormatError, read_ply, write_ply
+from runtime.io import PlyFormatError, read_ply, read_ply_faces, write_ply
 
 
 def _cloud(n=100, seed=0):
@@ -58,6 +58,29 @@ def test_reads_ascii_with_faces(tmp_path):
     xyz, rgb = read_ply(p)
     np.testing.assert_array_equal(xyz, [[0, 0, 0], [1.5, 0, 0], [0, -2, 0.3]])
     np.testing.assert_array_equal(rgb, [[255, 0, 0], [0, 255, 0], [0, 0, 255]])
+    np.testing.assert_array_equal(read_ply_faces(p), [[0, 1, 2]])
+    p.write_text(p.read_text().replace("3 0 1 2", "4 0 1 2 0"))  # a quad
+    with pytest.raises(PlyFormatError, match="triangle"):
+        read_ply_faces(p)
+
+
+def test_faces_round_trip_binary_and_big_endian(tmp_path):
+    xyz, rgb = _cloud(5)
+    faces = np.array([[0, 1, 2], [2, 3, 4], [4, 0, 1]])
+    p = write_ply(tmp_path / "m.ply", xyz, rgb, faces=faces)
+    np.testing.assert_array_equal(read_ply_faces(p), faces)
+    np.testing.assert_array_equal(read_ply(p)[1], rgb)  # the vertices read as before
+    header = (
+        "ply\nformat binary_big_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    )
+    header += "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    rec = np.array([(3, [2, 1, 0])], dtype=[("n", "u1"), ("i", ">i4", (3,))])
+    q = tmp_path / "be.ply"
+    q.write_bytes(header.encode() + np.zeros((3, 3), ">f4").tobytes() + rec.tobytes())
+    np.testing.assert_array_equal(read_ply_faces(q), [[2, 1, 0]])
+    q.write_bytes(header.encode() + np.zeros((3, 3), ">f4").tobytes() + rec.tobytes()[:-2])
+    with pytest.raises(PlyFormatError, match="truncated face data"):
+        read_ply_faces(q)
 
 
 def test_reads_big_endian_doubles_after_another_element(tmp_path):

@@ -75,7 +75,9 @@ class DenseMapConfig:
         voxel: voxel edge [m] of the downsampling (0: none) and of the fused map
             (:class:`runtime.dense.fusion.VoxelMap`; 0 there: 1 cm).
         mesh: also fuse the keyframes into a TSDF (:class:`runtime.dense.tsdf.TsdfVolume`, same filter and
-            ``1 / B^2`` weights) and write its surface as ``dense_mesh.ply``.
+            ``1 / B^2`` weights) and write its surface as ``dense_mesh.ply``. Off by default: on the network
+            thread it cost 10-29 CPU ms a frame, and the default sequence ran at 18.0 / 21.0 frames/s with it
+            against 31.3 / 25.5 without it (alternating runs, ``reports/ablations.md``).
         tsdf_voxel: voxel edge [m] of the TSDF.
         tsdf_trunc: truncation distance [m] of the TSDF (> ``tsdf_voxel``).
     """
@@ -86,7 +88,7 @@ class DenseMapConfig:
     max_depth: float = 10.0
     stride: int = 1
     voxel: float = 0.02
-    mesh: bool = True
+    mesh: bool = False
     tsdf_voxel: float = 0.04
     tsdf_trunc: float = 0.12
 

@@ -9,8 +9,9 @@
     ATE
 
 Sequences are rendered with ``sim`` into ``--data`` once (reused afterwards); the MH_05 excerpt of
-``../shared/data`` (real images, no IMU) is completed with ``dit-sim imu`` (vibration on) into ``--data``, once
-with real timing (it starts in flight: in-motion initialisation) and once with ``still=2``. Skipped with a note
+``../shared/data`` (real images, no IMU) is completed with ``dit-sim imu`` (vibration on; IMU seed = each of
+``--seeds``) into ``--data``, with real timing (it starts in flight: in-motion initialisation) and with
+``still=2``. Skipped with a note
 when the excerpt is absent. Every run is a fresh system in
 this process, one after another; FPS is frames / wall time of the whole run (image decoding included). The
 machine is shared and noisy: compare ratios measured in one invocation. Prints a table and writes JSON.
@@ -127,14 +128,14 @@ def mh05_jobs(args) -> list[tuple[str, float]]:
     return [("mh05" if r == "real" else "mh05_still2", 0.0 if r == "real" else 2.0) for r in args.mh05_runs]
 
 
-def mh05_sequence(source: Path, data: Path, still: float) -> Path:
-    """The MH_05 excerpt completed with a vibrating IMU (``dit-sim imu``), cached in ``data``."""
+def mh05_sequence(source: Path, data: Path, still: float, seed: int = 0) -> Path:
+    """The MH_05 excerpt completed with a vibrating IMU of seed ``seed`` (``dit-sim imu``), cached in ``data``."""
     from sim.complete import complete_imu
 
-    out = data / f"euroc_mh05_imu_still{still:g}"
+    out = data / f"euroc_mh05_imu_still{still:g}_s{seed}"
     if not (out / "mav0" / "imu0" / "data.csv").is_file():
-        print(f"completing {source} with an IMU (still={still:g}) into {out}")
-        complete_imu(source, out, still=still)
+        print(f"completing {source} with an IMU (still={still:g}, seed {seed}) into {out}")
+        complete_imu(source, out, still=still, seed=seed)
     return out
 
 
@@ -279,10 +280,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     jobs = [(p, seed, None) for p in args.presets for seed in args.seeds]
-    jobs += [(name, 0, still) for name, still in mh05_jobs(args)]
+    jobs += [(name, seed, still) for name, still in mh05_jobs(args) for seed in args.seeds]
     for preset, seed, still in jobs:
         if preset.startswith("mh05"):
-            root = mh05_sequence(Path(args.mh05), Path(args.data), still)
+            root = mh05_sequence(Path(args.mh05), Path(args.data), still, seed)
         else:
             root = default_sequence(
                 preset, args.duration, seed, not args.no_imu_noise, args.data, progress=True, realism=not args.synthetic

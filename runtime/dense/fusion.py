@@ -43,7 +43,16 @@ from runtime.geometry import Camera
 from runtime.io.ply import write_ply
 from runtime.outputs import atomic_write
 
-__all__ = ["depth_normals", "VoxelMap", "write_fused_map", "surface_metrics", "MAX_NORMAL_JUMP", "FINEST_VOXEL"]
+__all__ = [
+    "depth_normals",
+    "pixel_weights",
+    "colour_image",
+    "VoxelMap",
+    "write_fused_map",
+    "surface_metrics",
+    "MAX_NORMAL_JUMP",
+    "FINEST_VOXEL",
+]
 
 #: Largest relative depth step ``|z_neighbour - z| / z`` between a pixel and its four neighbours for which the
 #: pixel gets a normal (a larger one is an occlusion edge, not a surface).
@@ -102,6 +111,25 @@ def depth_normals(depth: np.ndarray, camera: Camera, mask: np.ndarray | None = N
     n[~good] = np.nan
     out[1:-1, 1:-1] = n + 0.0  # no -0.0
     return out
+
+
+def pixel_weights(uncertainty: np.ndarray | None, shape: tuple[int, int], min_uncertainty: float) -> np.ndarray:
+    """(H, W) fusion weights ``1 / B^2`` of a Laplace-scale map ``B`` [m] clamped below at ``min_uncertainty``,
+    or ones without uncertainty (ground truth, interpolated points)."""
+    if uncertainty is None:
+        return np.ones(shape)
+    return 1.0 / np.maximum(np.asarray(uncertainty, np.float64), min_uncertainty) ** 2
+
+
+def colour_image(image: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) float64 colours of a grey or RGB uint8 image of size ``shape`` (None: grey 128)."""
+    if image is None:
+        return np.full((*shape, 3), 128.0)
+    img = np.asarray(image)
+    if img.shape[:2] != tuple(shape) or img.dtype != np.uint8 or img.ndim not in (2, 3):
+        raise ValueError(f"image must be uint8 with size {tuple(shape)}, got {img.dtype} {img.shape}")
+    c = img.astype(np.float64)
+    return np.repeat(c[..., None], 3, -1) if c.ndim == 2 else c[..., :3]
 
 
 class VoxelMap:
@@ -181,19 +209,8 @@ class VoxelMap:
         p_c, uv = backproject(d, camera, mask, cfg.stride)
         iu, iv = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
         n_c = depth_normals(d, camera, mask)[iv, iu]
-        if uncertainty is None:
-            w = np.ones(len(p_c))
-        else:
-            b = np.maximum(np.asarray(uncertainty, np.float64)[iv, iu], self.min_uncertainty)
-            w = 1.0 / b**2
-        if image is None:
-            rgb = np.full((len(p_c), 3), 128.0)
-        else:
-            img = np.asarray(image)
-            if img.shape[:2] != d.shape or img.dtype != np.uint8:
-                raise ValueError(f"image must be uint8 with size {d.shape}, got {img.dtype} {img.shape}")
-            c = img[iv, iu].astype(np.float64)
-            rgb = np.repeat(c[:, None], 3, 1) if c.ndim == 1 else c[:, :3]
+        w = pixel_weights(uncertainty, d.shape, self.min_uncertainty)[iv, iu]
+        rgb = colour_image(image, d.shape)[iv, iu]
         T = np.asarray(T_w_c, np.float64)
         if T.shape != (4, 4):
             raise ValueError(f"T_w_c must be (4, 4), got {T.shape}")

@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from runtime.dense.config import DenseMapConfig
-from runtime.dense.fusion import MAX_NORMAL_JUMP
+from runtime.dense.fusion import MAX_NORMAL_JUMP, colour_image, pixel_weights
 from runtime.dense.map import uncertainty_mask
 from runtime.geometry import Camera
 from runtime.io.ply import write_ply
@@ -193,12 +193,8 @@ class TsdfVolume:
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ValueError(f"T_w_c must be a finite (4, 4) matrix, got shape {T.shape}")
         mask = uncertainty_mask(d, uncertainty, cfg)
-        w_pix = np.ones(d.shape, np.float32)
-        if uncertainty is not None:
-            w_pix = (1.0 / np.maximum(np.asarray(uncertainty, np.float64), self.min_uncertainty) ** 2).astype(
-                np.float32
-            )
-        colour = _colour_image(image, d.shape)
+        w_pix = pixel_weights(uncertainty, d.shape, self.min_uncertainty).astype(np.float32)
+        colour = colour_image(image, d.shape)
         rows = self._allocate(self._band_blocks(d, mask, camera, T))
         n = 0
         for s in range(0, rows.size, _CHUNK):
@@ -356,17 +352,6 @@ class TsdfVolume:
 def _measured_crossing(fa: np.ndarray, fb: np.ndarray) -> np.ndarray:
     """A sign change between two distances with neither end truncated (module doc)."""
     return ((fa >= 0) != (fb >= 0)) & (np.abs(fa) < 1.0) & (np.abs(fb) < 1.0)
-
-
-def _colour_image(image: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W, 3) float64 colours of a grey or RGB uint8 image (None: grey 128)."""
-    if image is None:
-        return np.full((*shape, 3), 128.0)
-    img = np.asarray(image)
-    if img.shape[:2] != tuple(shape) or img.dtype != np.uint8 or img.ndim not in (2, 3):
-        raise ValueError(f"image must be uint8 with size {tuple(shape)}, got {img.dtype} {img.shape}")
-    c = img.astype(np.float64)
-    return np.repeat(c[..., None], 3, -1) if c.ndim == 2 else c[..., :3]
 
 
 def _project(p_c: np.ndarray, camera: Camera, H: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

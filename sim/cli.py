@@ -154,7 +154,12 @@ def _imu(cfg: DictConfig) -> str:
         f"  {mav0 / 'state_groundtruth_estimate0'}: the fitted trajectory at the IMU timestamps\n"
         f"  fit vs the source ground truth: position median {f['pos_err_median_mm']:.3f} mm "
         f"(p95 {f['pos_err_p95_mm']:.3f}), rotation median {f['rot_err_median_deg']:.4f} deg "
-        f"(p95 {f['rot_err_p95_deg']:.4f})"
+        f"(p95 {f['rot_err_p95_deg']:.4f})\n"
+        f"  ground-truth steps spread over 2 s before the fit: {len(info['ground_truth_steps'])}"
+        + "".join(
+            f"\n    at {s['t_ns']} ns: {1e3 * sum(x * x for x in s['step_m']) ** 0.5:.1f} mm"
+            for s in info["ground_truth_steps"]
+        )
     )
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from runtime.geometry import GRAVITY_W, R_to_quat_wxyz, so3_exp
 from runtime.io.euroc import GT_HEADER, read_euroc
-from sim.complete import complete_imu
+from sim.complete import complete_imu, remove_steps
 from sim.euroc import EUROC_T_B_C0, _cam_yaml, _write_csv, scaled_camera
 from sim.imu import ImuNoise
 
@@ -27,15 +27,16 @@ def _truth(t):
     return Rw, p, v
 
 
-@pytest.fixture(scope="module")
-def source(tmp_path_factory):
-    """A 6 s circle at 200 Hz ground truth (biases 0.01 rad/s, 0.05 m/s^2) and 20 Hz tiny images (4 s)."""
-    root = tmp_path_factory.mktemp("posed")
+def _write_source(root: Path, step: np.ndarray | None = None) -> int:
+    """A 6 s circle at 200 Hz ground truth (biases 0.01 rad/s, 0.05 m/s^2) and 20 Hz tiny images (4 s); ``step``
+    [m] is added to every ground-truth position from t = 3 s on (a recording glitch). Returns t0 [ns]."""
     mav0 = root / "mav0"
     t0 = 1_600_000_000_000_000_000
     ts = t0 + 5_000_000 * np.arange(1200, dtype=np.int64)
     t = (ts - t0) * 1e-9
     Rw, p, v = _truth(t)
+    if step is not None:
+        p = p + step * (t >= 3.0)[:, None]
     bias = np.tile([0.01, -0.01, 0.01, 0.05, -0.05, 0.05], (len(t), 1))
     gt = np.concatenate([p, R_to_quat_wxyz(Rw), v, bias], 1)
     _write_csv(mav0 / "state_groundtruth_estimate0" / "data.csv", GT_HEADER, ts, gt)
@@ -45,7 +46,13 @@ def source(tmp_path_factory):
         cv2.imwrite(str(mav0 / "cam0" / "data" / f"{f}.png"), np.full((10, 16), k, np.uint8))
     (mav0 / "cam0" / "data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{f},{f}.png\n" for f in frames))
     (mav0 / "cam0" / "sensor.yaml").write_text(_cam_yaml(scaled_camera(16 / 752), EUROC_T_B_C0, 20))
-    return root, t0
+    return t0
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    root = tmp_path_factory.mktemp("posed")
+    return root, _write_source(root)
 
 
 def test_noiseless_completion_matches_the_truth(source, tmp_path):
@@ -67,6 +74,42 @@ def test_noiseless_completion_matches_the_truth(source, tmp_path):
     np.testing.assert_allclose(seq.accel, expect, atol=2e-3)
     np.testing.assert_array_equal(seq.gt.bg, np.tile([0.01, -0.01, 0.01], (len(t), 1)))
     assert seq.imu_ts[0] == seq.frame_ts[0] and seq.imu_ts[-1] <= seq.frame_ts[-1]
+
+
+def test_ground_truth_step_is_spread_not_felt_as_an_impulse(tmp_path):
+    """A 2 cm one-sample jump of the recorded ground truth: kept, the fit turns it into an accelerometer impulse of
+    tens of g; removed, the IMU stays within a fraction of 1 m/s^2 of the true circle's, and the written ground
+    truth equals the source outside the 2 s blend window."""
+    step = np.array([0.004, 0.017, 0.007])
+    root = tmp_path / "src"
+    t0 = _write_source(root, step)
+    kw = dict(noise=ZERO, errors=None, sigma_p=1e-6, sigma_q=1e-7)
+    complete_imu(root, tmp_path / "kept", step_mps=None, **kw)
+    info = complete_imu(root, tmp_path / "fixed", **kw)
+    assert len(info["ground_truth_steps"]) == 1
+    found = info["ground_truth_steps"][0]
+    np.testing.assert_allclose(found["step_m"], step, atol=2e-4)
+    assert abs(found["t_ns"] - (t0 + 2_997_500_000)) <= 5_000_000
+    kept, fixed = read_euroc(tmp_path / "kept"), read_euroc(tmp_path / "fixed")
+    t = (fixed.imu_ts - t0) * 1e-9
+    true_accel = np.tile([-W * W * R + 0.05, -0.05, -GRAVITY_W[2] + 0.05], (len(t), 1))
+    assert np.abs(kept.accel - true_accel).max() > 50.0
+    assert np.abs(fixed.accel - true_accel).max() < 0.3
+    _, p, _ = _truth(t)
+    p_src = p + step * (t >= 3.0)[:, None]
+    away = np.abs(t - 3.0) > 1.0
+    np.testing.assert_allclose(fixed.gt.p_w_b[away], p_src[away], atol=1e-5)
+    between = np.linalg.norm(fixed.gt.p_w_b - p, axis=1)
+    assert np.all(between <= np.linalg.norm(step) + 1e-5)  # the blend lies between the two levels
+
+
+def test_remove_steps_leaves_a_smooth_trajectory_alone():
+    ts = 5_000_000 * np.arange(2000, dtype=np.int64)
+    _, p, _ = _truth(ts * 1e-9)
+    rng = np.random.default_rng(0)
+    noisy = p + rng.normal(0.0, 3e-4, p.shape)  # EuRoC-like ground-truth noise
+    out, steps = remove_steps(ts, noisy)
+    assert steps == [] and np.array_equal(out, noisy)
 
 
 def test_still_period_repeats_first_image_and_ramps(source, tmp_path):
@@ -103,6 +146,10 @@ def test_real_mh05_excerpt_fit(tmp_path):
     assert len(seq) == 585 and len(seq.imu_ts) > 5000
     # rotor vibration: the gyro's sample-to-sample jitter is far above the ADIS white noise
     assert np.std(np.diff(seq.gyro, axis=0)) > 0.01
+    # the ground truth's 1.7-1.8 cm jumps (40.2 s and 46.6 s of MH_05) are spread, not felt as 10-20 g impulses
+    big = [s for s in info["ground_truth_steps"] if np.linalg.norm(s["step_m"]) > 0.01]
+    assert len(big) == 2
+    assert np.linalg.norm(seq.accel, axis=1).max() < 3 * 9.81
 
 
 def test_cli_imu(source, tmp_path, capsys):

@@ -163,11 +163,16 @@ def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return read_tum(path)
 
 
+def ours_command(system: str, seq: Path, out: Path) -> list[str]:
+    """The ``dit-slam`` command line of ``system``; the mode is always explicit (``dit-slam`` is dense by default)."""
+    if system not in OURS:
+        raise ValueError(f"{system!r} is not one of {OURS}")
+    dense = "true" if system == "dit-slam-dense" else "false"
+    return [str(BIN / "dit-slam"), f"sequence={seq}", f"out={out}", "progress=false", f"dense={dense}"]
+
+
 def run_ours(system: str, seq: Path, out: Path, timeout: float) -> dict:
-    cmd = [str(BIN / "dit-slam"), f"sequence={seq}", f"out={out}", "progress=false"]
-    if system == "dit-slam-dense":
-        cmd.append("dense=true")
-    r, wall, cpu = _child(cmd, timeout)
+    r, wall, cpu = _child(ours_command(system, seq, out), timeout)
     m = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
     n = int(m.get("frames") or 0)
     res = {

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.bench_peers import aggregate, merge_results, parse_sequence, ratios
+from benchmarks.bench_peers import aggregate, merge_results, ours_command, parse_sequence, ratios
 from benchmarks.peers import scoring, settings, vocab
 from runtime.io.sensor_yaml import load_sensor_yaml
 
@@ -287,3 +287,14 @@ def test_merge_keeps_vocabulary_notes_and_other_runs():
     assert m["commands"] == [old["command"], new["command"]] and len(m["machine"]["loadavg_each_run"]) == 2
     (q,) = m["ratios"]  # recomputed from the merged rows
     assert q["sequence"] == "a" and q["ate_ratio"] == pytest.approx(0.5)
+
+
+def test_ours_command_names_the_mode():
+    """``dit-slam`` is dense by default: the sparse row must ask for ``dense=false`` or it measures the dense system."""
+    sparse = ours_command("dit-slam-sparse", Path("seq"), Path("out"))
+    dense = ours_command("dit-slam-dense", Path("seq"), Path("out"))
+    assert "dense=false" in sparse and "dense=true" not in sparse
+    assert "dense=true" in dense and "dense=false" not in dense
+    assert sparse[1:3] == ["sequence=seq", "out=out"]
+    with pytest.raises(ValueError):
+        ours_command("orbslam3-mono", Path("seq"), Path("out"))

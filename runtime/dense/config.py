@@ -21,7 +21,7 @@ class DepthFactorConfig:
     """Settings of the depth factors (Eq. 13-14, :mod:`runtime.dense.factors`).
 
     Attributes:
-        sigma_per_b: row sigma per unit of the predicted Laplace scale ``B`` (``sqrt(2)``: Laplace). 8x Laplace:
+        sigma_per_b: row sigma per unit of the predicted Laplace scale ``B`` (``sqrt(2)``: Laplace). 16x Laplace:
             a depth map's errors are one smooth field, so hundreds of rows on one map are worth a handful of
             independent ones (``reports/``).
         min_sigma: floor on a row's sigma [m] (a tiny predicted ``B`` must not make a row rigid).
@@ -37,7 +37,7 @@ class DepthFactorConfig:
         check_shapes: assert every Jacobian's shape at each linearisation (GTSAM accepts wrong shapes).
     """
 
-    sigma_per_b: float = 8.0 * SIGMA_PER_LAPLACE_B
+    sigma_per_b: float = 16.0 * SIGMA_PER_LAPLACE_B
     min_sigma: float = 0.02
     geo_huber_k: float | None = 1.5
     consis_huber_k: float | None = 1.5

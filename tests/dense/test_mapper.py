@@ -217,7 +217,7 @@ def test_ground_truth_depth_source_keeps_the_code_part_of_the_network():
 def test_dense_config_holds_the_factor_and_map_settings_once():
     cfg = DenseConfig()
     f, m = cfg.factors, cfg.map  # the values the dense system runs with
-    assert f.sigma_per_b == 8.0 * 2.0**0.5 and f.min_sigma == 0.02 and f.edge_rel == 0.05 and f.chunk_size == 32
+    assert f.sigma_per_b == 16.0 * 2.0**0.5 and f.min_sigma == 0.02 and f.edge_rel == 0.05 and f.chunk_size == 32
     assert f.geo_huber_k == 1.5 and f.consis_huber_k == 1.5 and not f.check_shapes
     assert (m.max_rel_uncertainty, m.voxel, m.max_depth) == (0.1, 0.02, 10.0)
     cfg = DenseConfig.from_dict({"n_consis": 50, "factors": {"min_sigma": 0.03}, "map": {"voxel": 0.05}})

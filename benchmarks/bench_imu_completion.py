@@ -67,13 +67,6 @@ def preintegration_errors(root: Path, window_s: float = 1.0) -> dict:
     }
 
 
-def max_accel(root: Path) -> float:
-    """The largest accelerometer sample norm of a completed sequence [m/s^2]."""
-    from runtime.io.euroc import read_euroc
-
-    return float(np.linalg.norm(read_euroc(root).accel, axis=1).max())
-
-
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--source", default=str(REPO.parent / "shared" / "data" / "euroc_MH_05_excerpt"))
@@ -81,13 +74,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "bench_imu_completion.json"))
     args = ap.parse_args(argv)
 
-    from sim.complete import complete_imu
+    from sim.complete import complete_imu, steps_line
     from sim.imu import FLIGHT_IMU, ImuNoise
 
     src = Path(args.source)
     if not (src / "mav0" / "state_groundtruth_estimate0" / "data.csv").is_file():
         sys.exit(f"bench_imu_completion: no EuRoC-layout sequence with ground truth at {src}")
-    rows = {}
+    rows, infos = {}, {}
     with tempfile.TemporaryDirectory() as d:
         for name, kw in (
             ("noiseless", dict(errors=None, noise=ImuNoise(0.0, 0.0, 0.0, 0.0))),
@@ -96,14 +89,14 @@ def main(argv: list[str] | None = None) -> dict:
             ("vibration_still2s", dict(errors=FLIGHT_IMU, still=2.0)),
         ):
             out = Path(d) / name
-            info = complete_imu(src, out, **kw)
+            infos[name] = info = complete_imu(src, out, **kw)
             rows[name] = {
                 "fit": info["fit"],
                 "preintegration": preintegration_errors(out, args.window),
                 "frames": info["frames"],
                 "imu_samples": info["imu_samples"],
                 "ground_truth_steps": info["ground_truth_steps"],
-                "max_accel_mps2": max_accel(out),
+                "max_accel_mps2": info["max_accel_mps2"],
             }
     fit = rows["noise_only"]["fit"]
     print(f"dit-sim imu on {src}")
@@ -113,13 +106,8 @@ def main(argv: list[str] | None = None) -> dict:
         f"{fit['rot_err_median_deg']:.4f} deg (p95 {fit['rot_err_p95_deg']:.4f}), velocity median "
         f"{fit['vel_err_median_mm_s']:.2f} mm/s"
     )
-    steps = rows["noise_only"]["ground_truth_steps"]
-    print(
-        f"ground-truth steps spread over 2 s before the fit: {len(steps)} ("
-        + ", ".join(f"{1e3 * float(np.linalg.norm(st['step_m'])):.1f} mm" for st in steps)
-        + "); largest accelerometer sample: "
-        + ", ".join(f"{k} {r['max_accel_mps2']:.1f} m/s^2" for k, r in rows.items())
-    )
+    print(steps_line(infos["noise_only"]))
+    print("largest accelerometer sample: " + ", ".join(f"{k} {r['max_accel_mps2']:.1f} m/s^2" for k, r in rows.items()))
     print(f"GTSAM preintegration over {args.window:g} s windows vs the written ground truth (3-D error norms):")
     print(
         f"{'variant':20s} {'windows':>7s} {'pos med':>9s} {'pos p95':>9s} {'vel med':>9s} {'rot med':>9s} "

@@ -124,7 +124,7 @@ def _nyu(cfg: DictConfig) -> str:
 
 
 def _imu(cfg: DictConfig) -> str:
-    from sim.complete import complete_imu
+    from sim.complete import complete_imu, steps_line
     from sim.imu import FLIGHT_IMU, ImuNoise
 
     out = _out(cfg)
@@ -155,11 +155,7 @@ def _imu(cfg: DictConfig) -> str:
         f"  fit vs the source ground truth: position median {f['pos_err_median_mm']:.3f} mm "
         f"(p95 {f['pos_err_p95_mm']:.3f}), rotation median {f['rot_err_median_deg']:.4f} deg "
         f"(p95 {f['rot_err_p95_deg']:.4f})\n"
-        f"  ground-truth steps spread over 2 s before the fit: {len(info['ground_truth_steps'])}"
-        + "".join(
-            f"\n    at {s['t_ns']} ns: {1e3 * sum(x * x for x in s['step_m']) ** 0.5:.1f} mm"
-            for s in info["ground_truth_steps"]
-        )
+        f"  {steps_line(info)}; largest accelerometer sample {info['max_accel_mps2']:.1f} m/s^2"
     )
 
 

@@ -41,7 +41,7 @@ from sim.imu import EUROC_ADIS16448, FLIGHT_IMU, ImuErrors, ImuNoise, add_imu_er
 from sim.output import GENERATOR, sim_output, write_info
 from sim.trajectory import smooth_step
 
-__all__ = ["SplineFit", "fit_ground_truth", "remove_steps", "complete_imu"]
+__all__ = ["SplineFit", "fit_ground_truth", "remove_steps", "steps_line", "complete_imu"]
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -122,20 +122,22 @@ def remove_steps(
     flagged = np.linalg.norm(excess, axis=1) > step_mps * dt
     # the jumps themselves out (sample k carries every flagged displacement before it), then each step back in, smooth
     out = p - np.concatenate([np.zeros((1, 3)), np.cumsum(excess * flagged[:, None], axis=0)])
-    steps, i = [], 0
-    while i < len(flagged):
-        if not flagged[i]:
-            i += 1
-            continue
-        j = i
-        while j + 1 < len(flagged) and flagged[j + 1]:
-            j += 1
-        d = excess[i : j + 1].sum(0)
-        tk = 0.5 * (t[i] + t[j + 1])  # the jump happens between samples i and j + 1
+    bounds = np.flatnonzero(np.diff(np.concatenate([[0], flagged.astype(np.int8), [0]])))
+    steps = []
+    for i, j1 in zip(bounds[::2], bounds[1::2], strict=True):  # flagged[i:j1] is one step
+        d = excess[i:j1].sum(0)
+        tk = 0.5 * (t[i] + t[j1])  # the jump happens between samples i and j1
         out += d * smooth_step((t - tk) / blend_s + 0.5)[:, None]
         steps.append({"t_ns": int(ts_ns[0]) + int(round(tk * 1e9)), "step_m": [float(x) for x in d]})
-        i = j + 1
     return out, steps
+
+
+def steps_line(info: dict) -> str:
+    """One line on the ground-truth steps of a :func:`complete_imu` summary: how many, their size and time."""
+    steps = info["ground_truth_steps"]
+    line = f"ground-truth steps spread over {info['ground_truth_step_blend_s']:g} s before the fit: {len(steps)}"
+    sizes = ", ".join(f"{1e3 * float(np.linalg.norm(st['step_m'])):.1f} mm at {st['t_ns']} ns" for st in steps)
+    return line + (f" ({sizes})" if steps else "")
 
 
 def fit_ground_truth(
@@ -365,6 +367,8 @@ def complete_imu(
             "vel_err_median_mm_s": float(np.median(e_v) * 1e3),
         },
         "ground_truth_steps": steps,
+        "ground_truth_step_blend_s": float(step_blend_s),
+        "max_accel_mps2": float(np.linalg.norm(a_meas, axis=1).max()),
     }
     with sim_output(out, ("mav0",), "imu", source=str(source), seed=int(seed)):
         _write_completed(out, cam_src, out_frame_ts, out_names, noise, imu_ts, g_meas, a_meas, p, R, v, bg, ba)

@@ -311,12 +311,24 @@ class FeatureTracker:
             self.prev_pyr, self.prev_image = self._pyramid(image), image
         return self._features(ts)
 
-    def rename(self, old: np.ndarray, new: np.ndarray) -> None:
-        """Give tracks new ids (a track re-associated with an old map point takes the point's id)."""
-        if len(old) == 0:
-            return
-        m = dict(zip(np.asarray(old).tolist(), np.asarray(new).tolist(), strict=False))
-        self.ids = np.array([m.get(int(j), int(j)) for j in self.ids], dtype=np.int64)
+    def rename(self, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        """Give tracks new ids (a track re-associated with an old map point takes the point's id).
+
+        Ids stay unique: a pair whose new id another track keeps, or that an earlier pair already gives, is
+        skipped. Returns the mask of the pairs applied."""
+        old, new = np.asarray(old, np.int64).reshape(-1), np.asarray(new, np.int64).reshape(-1)
+        applied = np.zeros(old.size, dtype=bool)
+        kept = set(self.ids.tolist()) - set(old.tolist())
+        m = {}
+        for n, (a, b) in enumerate(zip(old.tolist(), new.tolist(), strict=True)):
+            if a in m or b in kept:
+                continue
+            m[a] = b
+            kept.add(b)
+            applied[n] = True
+        if m:
+            self.ids = np.array([m.get(int(j), int(j)) for j in self.ids], dtype=np.int64)
+        return applied
 
     def drop(self, ids: np.ndarray) -> None:
         """Stop tracking the given ids (e.g. landmarks the backend rejected as outliers)."""

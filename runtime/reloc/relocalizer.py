@@ -97,9 +97,10 @@ class Relocalizer:
         view = candidates_in_view(
             kf.T_w_b @ self.T_b_c, Xm, self.K, self.camera.width, self.camera.height, c.frustum_margin, c.max_depth
         )
-        dm, okm = self.descriptors.get(map_ids[view])
-        ids_c, X_c, dm = map_ids[view][okm], Xm[view][okm], dm[okm]
         feats = self.tracker.current(kf.ts)
+        dm, okm = self.descriptors.get(map_ids[view])
+        okm &= ~np.isin(map_ids[view], feats.ids)  # a map point still tracked keeps its own track
+        ids_c, X_c, dm = map_ids[view][okm], Xm[view][okm], dm[okm]
         df, okf = self.descriptors.describe(image, feats.uv)
         f_idx = np.nonzero(okf)[0]
         qi, ti = match(df[f_idx], dm, c.max_hamming, c.ratio)
@@ -118,11 +119,12 @@ class Relocalizer:
         if shift >= c.min_correction_m:
             T_corr, bridged = self._correct(kf, T_new, yaw, lost_since, regained)
         m_ids, t_ids = ids_c[ti][inl], feats.ids[fi][inl]
+        ok = self.tracker.rename(t_ids, m_ids)
+        m_ids, t_ids = m_ids[ok], t_ids[ok]
         for j in t_ids:
             if self.backend.map.is_landmark(j):
                 self.backend.map.delete_landmark(int(j))
-        self.tracker.rename(t_ids, m_ids)
-        self.backend.reactivate_landmarks(m_ids, X_c[ti][inl], kf.kf_id, feats.uv_u[fi][inl], c.map_point_sigma)
+        self.backend.reactivate_landmarks(m_ids, X_c[ti][inl][ok], kf.kf_id, feats.uv_u[fi][inl][ok], c.map_point_sigma)
         return Relocalization(T_corr, t_ids, n_in, int(qi.size), shift, float(np.degrees(yaw)), bridged)
 
     def _correct(self, kf, T_new: np.ndarray, yaw: float, t0: int, t1: int) -> tuple[np.ndarray, bool]:
@@ -160,9 +162,10 @@ class Relocalizer:
         uv, view = in_view(inv_T(kf.T_w_b @ self.T_b_c), Xm, self.K, self.camera.width, self.camera.height, c.max_depth)
         if not view.any():
             return none
-        dm, okm = self.descriptors.get(ids[view])
-        ids_c, X_c, uv_c, dm = ids[view][okm], Xm[view][okm], uv[view][okm], dm[okm]
         feats = self.tracker.current(kf.ts)
+        dm, okm = self.descriptors.get(ids[view])
+        okm &= ~np.isin(ids[view], feats.ids)  # a map point still tracked keeps its own track
+        ids_c, X_c, uv_c, dm = ids[view][okm], Xm[view][okm], uv[view][okm], dm[okm]
         free = np.array([not self.backend.map.is_landmark(j) for j in feats.ids], dtype=bool)
         if not free.any() or ids_c.size == 0:
             return none
@@ -172,8 +175,9 @@ class Relocalizer:
         mi, fi = guided_match(uv_c, dm, feats.uv_u[fidx], df[okf], c.guided_radius_px, c.guided_max_hamming, c.ratio)
         if mi.size == 0:
             return none
+        ok = self.tracker.rename(feats.ids[fidx[fi]], ids_c[mi])
+        mi, fi = mi[ok], fi[ok]
         t_ids, m_ids = feats.ids[fidx[fi]], ids_c[mi]
-        self.tracker.rename(t_ids, m_ids)
         self.backend.reactivate_landmarks(m_ids, X_c[mi], kf.kf_id, feats.uv_u[fidx[fi]], c.map_point_sigma)
         return t_ids
 

@@ -101,3 +101,50 @@ def test_correction_and_reactivated_map_points_pull_the_window_onto_the_map():
     be.map.keyframes[1].T_w_b = make_T(so3_exp(np.array([0.0, 0.01, 0.0])), [0.05, 0.0, 0.02]) @ T0
     stats = be.optimize()
     assert stats["ok"] and pose_error(be.map.keyframes[1].T_w_b, T0)[0] < 0.005
+
+
+def test_rename_keeps_track_ids_unique():
+    from runtime.frontend.tracking import FeatureTracker
+
+    tr = FeatureTracker(EUROC_CAM, EUROC_T_BS)
+    tr.ids, tr.uv = np.array([1, 2, 3], np.int64), np.zeros((3, 2), np.float32)
+    ok = tr.rename(np.array([1, 2]), np.array([3, 9]))  # 3 is another track's id: that pair is skipped
+    assert ok.tolist() == [False, True] and tr.ids.tolist() == [1, 9, 3]
+    ok = tr.rename(np.array([1, 9]), np.array([5, 5]))  # one id for two tracks: only the first
+    assert ok.tolist() == [True, False] and tr.ids.tolist() == [5, 9, 3]
+    ok = tr.rename(np.array([3, 5]), np.array([10, 3]))  # an id freed by the same call can be taken
+    assert ok.all() and tr.ids.tolist() == [3, 9, 10]
+
+
+def test_guided_match_leaves_a_map_point_that_is_still_tracked_to_its_own_track():
+    """A map point whose own track is still alive (its landmark left the window while the track went on) must not
+    be handed to a second track: two tracks with one id broke the keyframe decision (an IndexError)."""
+    from types import SimpleNamespace
+
+    from runtime.frontend.tracking import FeatureTracker
+    from runtime.reloc.relocalizer import Relocalizer, RelocConfig
+
+    rng = np.random.default_rng(0)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (EUROC_CAM.height, EUROC_CAM.width)).astype(np.uint8), (5, 5), 1.0)
+    tr = FeatureTracker(EUROC_CAM, EUROC_T_BS)
+    tr.ids = np.array([3, 7, 4], np.int64)  # track 7 is map point 7, still tracked
+    tr.uv = np.array([[200.0, 150.0], [500.0, 300.0], [350.0, 260.0]], np.float32)
+    feats = tr.current(0)
+    K = EUROC_CAM.pinhole().K
+    depth = np.array([[3.0], [4.0]])
+    # map point 7 projects onto track 3, map point 8 onto track 4 (the undistorted pixels the match uses)
+    xn = (feats.uv_u[[0, 2]] - K[:2, 2]) / [K[0, 0], K[1, 1]]
+    Xm = np.concatenate([xn, np.ones((2, 1))], 1) * depth  # camera frame = world frame below
+    reactivated = []
+    backend = SimpleNamespace(
+        map=SimpleNamespace(map_point_arrays=lambda: (np.array([7, 8]), Xm), is_landmark=lambda j: False),
+        reactivate_landmarks=lambda ids, X, k, uv, s: reactivated.append(np.asarray(ids).tolist()),
+    )
+    reloc = Relocalizer(RelocConfig(), EUROC_CAM, EUROC_T_BS, backend, tr)
+    desc, ok = reloc.descriptors.describe(image, feats.uv[[0, 2]])
+    assert ok.all()
+    reloc.descriptors.add(np.array([7, 8]), desc, ok)
+    kf = SimpleNamespace(kf_id=5, ts=0, T_w_b=inv_T(np.asarray(EUROC_T_BS, np.float64)))
+    renamed = reloc.guided_match(kf, image)
+    assert renamed.tolist() == [4] and reactivated == [[8]]  # map point 8 is re-found on track 4
+    assert tr.ids.tolist() == [3, 7, 8]  # track 3 keeps its id: 7 stays with its own track

@@ -9,6 +9,8 @@ The rule for "at rest" (:func:`imu_rest_stats`, used by the initialiser and by t
 running system) is the one of OpenVINS and ORB-SLAM3: image motion first, the IMU second.
 
 * The tracked features have not moved: median displacement over the window below ``flow_max_px`` (1 px).
+  Frames that do not yet cover the window (just after a restart), or tracks that do not survive it, count as
+  motion (:meth:`runtime.init.runner.InitRunner._flow`); only a view with too few tracks leaves it to the IMU.
 * The IMU's *low-frequency* content is quiet. Rotor vibration (tens to hundreds of Hz) is far above any
   motion's band, so the samples are averaged in blocks of ``block_s`` (50 ms) and the spread of the block means
   is tested: below ``gyro_std_max`` (0.03 rad/s) and ``accel_std_max`` (0.3 m/s^2) per axis, and
@@ -153,7 +155,8 @@ class StaticInitializer:
         Args:
             ts_now: ns, current camera time.
             imu_ts, gyro, accel: samples with ``ts_now - still_duration <= imu_ts < ts_now`` (body frame).
-            flow_px: median displacement [px] of tracked features across the same window (None: IMU only).
+            flow_px: median displacement [px] of tracked features across the same window (None: IMU only;
+                inf: the images show motion).
 
         Returns:
             The initial state at ``ts_now`` when the window is still, else None.

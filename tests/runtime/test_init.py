@@ -110,3 +110,47 @@ def test_vibrating_motion_is_refused():
     assert init.check(int(ts[-1]), ts, gyro, acc, flow_px=0.2) is None  # the IMU moves, even if the image does not
     ts2, g2, a2, _ = _still()
     assert init.check(int(ts2[-1]), ts2, g2, a2, flow_px=3.0) is None  # the image moves, even if the IMU does not
+
+
+def _runner_at_rest():
+    """An InitRunner on 2 s of IMU at rest (200 Hz), dynamic initialisation off: only the static start can happen."""
+    from runtime.backend.imu import ImuStream
+    from runtime.init.dynamic import DynamicInitConfig
+    from runtime.init.runner import InitRunner
+
+    ts, gyro, acc, _ = _still(n=400)
+    imu = ImuStream(ts, gyro, acc, 200.0)
+    return InitRunner(InitConfig(), DynamicInitConfig(enabled=False), imu, np.eye(4), 460.0, GRAVITY)
+
+
+def _frame(runner, k, ids, uv):
+    from runtime.frontend.tracking import FrameFeatures
+    from runtime.init.runner import Snapshot
+
+    ids = np.asarray(ids, np.int64)
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    ts = 1_000_000_000 + k * 50_000_000  # 20 Hz, from 1 s into the IMU
+    runner.add(Snapshot(k, ts, FrameFeatures(ts, ids, uv, uv / 460.0, uv)))
+    return ts
+
+
+def test_static_start_needs_image_evidence_of_rest_when_the_images_have_tracks():
+    """The IMU alone cannot tell slow motion from rest: tracks that do not survive the rest window, or frames that
+    do not yet cover it (just after a restart), must stop a static start; a view with nothing to track leaves the
+    decision to the IMU."""
+    grid = np.stack(np.meshgrid(np.arange(5) * 80.0 + 100, np.arange(4) * 80.0 + 100), -1).reshape(-1, 2)  # 20 tracks
+    # tracks kept still over the whole second: rest
+    r = _runner_at_rest()
+    out = [r.step(_frame(r, k, np.arange(20), grid)) for k in range(21)]
+    assert out[-1] is not None and out[-1].method == "static" and r.static.last_stats["flow_px"] == 0.0
+    # only the last frame since a restart, tracks still: the images have not covered the window yet
+    r = _runner_at_rest()
+    assert r.step(_frame(r, 20, np.arange(20), grid)) is None
+    # 20 tracks in each frame, but renewed every frame (nothing survives the window): moving
+    r = _runner_at_rest()
+    out = [r.step(_frame(r, k, np.arange(20) + 20 * k, grid)) for k in range(21)]
+    assert all(o is None for o in out) and r.static.last_stats["flow_px"] == float("inf")
+    # a bare view (5 tracks, renewed): the images cannot tell, the IMU decides
+    r = _runner_at_rest()
+    out = [r.step(_frame(r, k, np.arange(5) + 5 * k, grid[:5])) for k in range(21)]
+    assert out[-1] is not None and r.static.last_stats["flow_px"] is None

@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 class BackendConfig:
     """Sliding-window backend settings."""
 
-    window_size: int = 30  # active keyframes (full X, V, B states); 10 left a 2-5 % metric scale error (ablations)
+    window_size: int = 30  # active keyframes (X, V, B); 10 left the metric scale 2-5 % off (reports/ablations.md)
     anchor_old_observations: bool = True  # keep observations of keyframes that left, poses held fixed
     max_anchor_keyframes: int = 30
     anchor_sigma: float = 3e-3  # rad and m: how firmly anchored poses are held (1e-4 froze the metric scale)

@@ -98,8 +98,7 @@ class Relocalizer:
             kf.T_w_b @ self.T_b_c, Xm, self.K, self.camera.width, self.camera.height, c.frustum_margin, c.max_depth
         )
         feats = self.tracker.current(kf.ts)
-        dm, okm = self.descriptors.get(map_ids[view])
-        okm &= ~np.isin(map_ids[view], feats.ids)  # a map point still tracked keeps its own track
+        dm, okm = self._untracked_descriptors(map_ids[view], feats)
         ids_c, X_c, dm = map_ids[view][okm], Xm[view][okm], dm[okm]
         df, okf = self.descriptors.describe(image, feats.uv)
         f_idx = np.nonzero(okf)[0]
@@ -118,13 +117,8 @@ class Relocalizer:
         T_corr, bridged = np.eye(4), False
         if shift >= c.min_correction_m:
             T_corr, bridged = self._correct(kf, T_new, yaw, lost_since, regained)
-        m_ids, t_ids = ids_c[ti][inl], feats.ids[fi][inl]
-        ok = self.tracker.rename(t_ids, m_ids)
-        m_ids, t_ids = m_ids[ok], t_ids[ok]
-        for j in t_ids:
-            if self.backend.map.is_landmark(j):
-                self.backend.map.delete_landmark(int(j))
-        self.backend.reactivate_landmarks(m_ids, X_c[ti][inl][ok], kf.kf_id, feats.uv_u[fi][inl][ok], c.map_point_sigma)
+        mi, fi = ti[inl], fi[inl]
+        t_ids = self._adopt(kf.kf_id, feats.ids[fi], ids_c[mi], X_c[mi], feats.uv_u[fi])
         return Relocalization(T_corr, t_ids, n_in, int(qi.size), shift, float(np.degrees(yaw)), bridged)
 
     def _correct(self, kf, T_new: np.ndarray, yaw: float, t0: int, t1: int) -> tuple[np.ndarray, bool]:
@@ -163,8 +157,7 @@ class Relocalizer:
         if not view.any():
             return none
         feats = self.tracker.current(kf.ts)
-        dm, okm = self.descriptors.get(ids[view])
-        okm &= ~np.isin(ids[view], feats.ids)  # a map point still tracked keeps its own track
+        dm, okm = self._untracked_descriptors(ids[view], feats)
         ids_c, X_c, uv_c, dm = ids[view][okm], Xm[view][okm], uv[view][okm], dm[okm]
         free = np.array([not self.backend.map.is_landmark(j) for j in feats.ids], dtype=bool)
         if not free.any() or ids_c.size == 0:
@@ -175,10 +168,25 @@ class Relocalizer:
         mi, fi = guided_match(uv_c, dm, feats.uv_u[fidx], df[okf], c.guided_radius_px, c.guided_max_hamming, c.ratio)
         if mi.size == 0:
             return none
-        ok = self.tracker.rename(feats.ids[fidx[fi]], ids_c[mi])
-        mi, fi = mi[ok], fi[ok]
-        t_ids, m_ids = feats.ids[fidx[fi]], ids_c[mi]
-        self.backend.reactivate_landmarks(m_ids, X_c[mi], kf.kf_id, feats.uv_u[fidx[fi]], c.map_point_sigma)
+        fi = fidx[fi]
+        return self._adopt(kf.kf_id, feats.ids[fi], ids_c[mi], X_c[mi], feats.uv_u[fi])
+
+    def _untracked_descriptors(self, ids: np.ndarray, feats) -> tuple[np.ndarray, np.ndarray]:
+        """Descriptors (N, 32) of map points ``ids`` and the mask of those that have one and are not tracked in
+        ``feats``: a map point still tracked keeps its own track."""
+        dm, ok = self.descriptors.get(ids)
+        return dm, ok & ~np.isin(ids, feats.ids)
+
+    def _adopt(self, kf_id: int, t_ids: np.ndarray, m_ids: np.ndarray, X_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Tracks ``t_ids`` take the ids of map points ``m_ids`` (positions ``X_m``), which come back into the window
+        observed by keyframe ``kf_id`` at undistorted pixels ``uv``; a track that was a landmark gives it up. Pairs
+        that would give two tracks one id are skipped. Returns the renamed track ids."""
+        ok = self.tracker.rename(t_ids, m_ids)
+        t_ids = t_ids[ok]
+        for j in t_ids:
+            if self.backend.map.is_landmark(j):
+                self.backend.map.delete_landmark(int(j))
+        self.backend.reactivate_landmarks(m_ids[ok], X_m[ok], kf_id, uv[ok], self.cfg.map_point_sigma)
         return t_ids
 
 

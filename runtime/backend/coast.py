@@ -140,11 +140,11 @@ def smooth_chain(chain: list[Keyframe], anchor_priors: list, link, kf_id: int, T
     X, _, _, _, _ = keys()
     graph = gtsam.NonlinearFactorGraph()
     for f in anchor_priors:
-        graph.push_back(f)
+        graph.add(f)
     for kf in chain[1:]:
         for f in link(kf.kf_id):
-            graph.push_back(f)
-    graph.push_back(
+            graph.add(f)
+    graph.add(
         gtsam.PriorFactorPose3(
             X(kf_id),
             to_pose3(T_fix),

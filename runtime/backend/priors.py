@@ -61,7 +61,7 @@ def eliminate(factors: list, states: list[Keyframe], eliminated: list, keep: Key
 
     fg = gtsam.NonlinearFactorGraph()
     for f in factors:
-        fg.push_back(f)
+        fg.add(f)
     vals = gtsam.Values()
     for kf in states:
         insert_state(vals, kf.kf_id, kf.T_w_b, kf.v_w, kf.bias)
@@ -96,14 +96,14 @@ def visual_prior(window: MapState, prior_factors: list, o: int, fix_sigma: float
     values = gtsam.Values()
     insert_state(values, o, kf.T_w_b, kf.v_w, kf.bias)
     for f in prior_factors:
-        graph.push_back(f)
+        graph.add(f)
     fix = gtsam.noiseModel.Isotropic.Sigma(3, fix_sigma)
     lm_order = gtsam.Ordering()
     for j in obs:
         lm = window.landmarks[j]
         values.insert(L(j), lm.X_w)
-        graph.push_back(lm.factors[o])
-        graph.push_back(gtsam.PriorFactorPoint3(L(j), lm.X_w, fix))
+        graph.add(lm.factors[o])
+        graph.add(gtsam.PriorFactorPoint3(L(j), lm.X_w, fix))
         lm_order.push_back(L(j))
     try:
         _, remaining = graph.linearize(values).eliminatePartialSequential(lm_order)

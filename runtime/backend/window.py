@@ -298,31 +298,31 @@ class SlidingWindowBackend:
         chain = self.archive.window_chain(m.active)
         if chain is None:
             for f in self.prior_factors:
-                graph.push_back(f)
+                graph.add(f)
         else:  # the coast from its anchor instead of the marginal prior that summarises it
             for f in self.archive.coast.anchor_priors:
-                graph.push_back(f)
+                graph.add(f)
             for kf in chain:
                 insert_state(values, kf.kf_id, kf.T_w_b, kf.v_w, kf.bias)
             for k in [kf.kf_id for kf in chain[1:]] + [m.active[0]]:
                 for f in self.archive.links[k]:
-                    graph.push_back(f)
+                    graph.add(f)
         in_chain = {kf.kf_id for kf in chain or ()}
         links = gtsam.NonlinearFactorGraph()  # inter-keyframe factors (IMU, zero motion)
         for k in m.active[1:]:
             for f in self.imu_factors[k]:
-                links.push_back(f)
+                links.add(f)
             if k in self.still_between:
-                links.push_back(self.still_between[k])
+                links.add(self.still_between[k])
         for k in m.active:
             if k in self.vel_priors:
-                graph.push_back(self.vel_priors[k])
+                graph.add(self.vel_priors[k])
         used_anchors, proj_lm = self._add_landmarks_to(graph, values)
         anchor_noise = gtsam.noiseModel.Isotropic.Sigma(6, self.cfg.anchor_sigma)
         for k in used_anchors - in_chain:  # coasted keyframes are variables of the smoother instead
             kf = m.keyframes[k]
             values.insert(X(k), to_pose3(kf.T_w_b))
-            graph.push_back(gtsam.PriorFactorPose3(X(k), to_pose3(kf.T_w_b), anchor_noise))
+            graph.add(gtsam.PriorFactorPose3(X(k), to_pose3(kf.T_w_b), anchor_noise))
         return graph, links, values, proj_lm, chain
 
     def _add_landmarks_to(self, graph, values) -> tuple[set, set]:
@@ -336,9 +336,9 @@ class SlidingWindowBackend:
                 continue
             values.insert(L(j), lm.X_w)
             if lm.map_prior is not None:
-                graph.push_back(lm.map_prior)
+                graph.add(lm.map_prior)
             for k, f in lm.factors.items():
-                graph.push_back(f)
+                graph.add(f)
                 lm_ids.add(j)
                 if k not in active:
                     used_anchors.add(k)

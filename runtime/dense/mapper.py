@@ -279,16 +279,16 @@ class DenseMapper:
             d = self.kfs[k]
             d.had_code = True
             values.insert(C(k), np.asarray(d.code, np.float64))
-            graph.push_back(gtsam.PriorFactorVector(C(k), np.zeros(Cd), prior_noise))
+            graph.add(gtsam.PriorFactorVector(C(k), np.zeros(Cd), prior_noise))
             if cfg.use_depth_residual:
                 for f in self._geometric_factors(backend, k, values):
-                    graph.push_back(f)
+                    graph.add(f)
                     n_geo += f.dim()
         if cfg.use_consistency and len(sel) >= 2:
             for k2 in sel[1:]:
                 f = self._consistency_factor(backend, sel[0], k2)
                 if f is not None:
-                    graph.push_back(f)
+                    graph.add(f)
                     n_con += f.dim()
         self.stats.n_optim += 1
         self.stats.n_code_kfs.append(len(sel))

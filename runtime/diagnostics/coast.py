@@ -75,21 +75,21 @@ def oracle_coast(seq, t0: int, t1: int, mode: str, dt_kf: float = 0.4, wall_x: f
         values.insert(X(k), to_pose3(T[k]))
         values.insert(V(k), v[k])
         values.insert(B(k), make_bias(bias0))
-    graph.push_back(gtsam.PriorFactorPose3(X(0), to_pose3(T[0]), tight(6, 1e-3)))
-    graph.push_back(gtsam.PriorFactorVector(V(0), v[0], tight(3, 1e-3)))
-    graph.push_back(gtsam.PriorFactorConstantBias(B(0), make_bias(bias0), tight(6, 1e-4)))
-    graph.push_back(gtsam.PriorFactorPose3(X(n - 1), to_pose3(T[-1]), tight(6, 1e-3)))
+    graph.add(gtsam.PriorFactorPose3(X(0), to_pose3(T[0]), tight(6, 1e-3)))
+    graph.add(gtsam.PriorFactorVector(V(0), v[0], tight(3, 1e-3)))
+    graph.add(gtsam.PriorFactorConstantBias(B(0), make_bias(bias0), tight(6, 1e-4)))
+    graph.add(gtsam.PriorFactorPose3(X(n - 1), to_pose3(T[-1]), tight(6, 1e-3)))
     if mode != "end pose":
-        graph.push_back(gtsam.PriorFactorVector(V(n - 1), v[-1], tight(3, 1e-3)))
+        graph.add(gtsam.PriorFactorVector(V(n - 1), v[-1], tight(3, 1e-3)))
     for k in range(n - 1):
         pim = gtsam.PreintegratedCombinedMeasurements(params, make_bias(bias0))
         integrate(pim, *imu.segment(int(ts[k]), int(ts[k + 1])))
-        graph.push_back(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim))
+        graph.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim))
     if mode == "+ wall distance":
         t_b_c = seq.T_b_c[:3, 3]
         for k in range(1, n - 1):
             distance = wall_x - (T[k][:3, :3] @ t_b_c + T[k][:3, 3])[0]
-            graph.push_back(wall_distance_factor(X(k), distance, wall_x, t_b_c))
+            graph.add(wall_distance_factor(X(k), distance, wall_x, t_b_c))
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
     return np.array([from_pose3(result.atPose3(X(k)))[:3, 3] - T[k][:3, 3] for k in range(n)])
 

@@ -99,6 +99,28 @@ def test_backend_recovers_ground_truth_from_perturbed_values():
     assert backend.init_kf_id == 3 and backend.map.active == [3]
 
 
+def test_reprojection_errors_are_per_observation_pixel_distances():
+    sc = Scenario()
+    backend = SlidingWindowBackend(EUROC_CAM.intrinsics, EUROC_T_BS, sc.params, BackendConfig())
+    ids = _build(sc, backend, 4, np.random.default_rng(1))
+    m = backend.map
+    for i in range(4):
+        m.keyframes[i].T_w_b = sc.T[i].copy()
+    for j in ids:
+        m.landmarks[j].X_w = sc.pts[j].copy()
+    j0, k0 = ids[7], sorted(m.landmarks[ids[7]].obs)[-1]
+    m.landmarks[j0].obs[k0] = m.landmarks[j0].obs[k0] + np.array([3.0, -4.0])
+    kfs, lms, err, z = backend.reprojection_errors()
+    pairs = [(int(k), int(j)) for k, j in zip(kfs, lms, strict=True)]
+    assert pairs == [(k, j) for j, lm in m.landmarks.items() for k in lm.obs]  # one row per observation, in order
+    hit = (kfs == k0) & (lms == j0)
+    assert hit.sum() == 1 and err[hit][0] == pytest.approx(5.0, abs=1e-6)
+    assert np.abs(err[~hit]).max() < 1e-6
+    T_c_w = [inv_T(sc.T[int(k)] @ EUROC_T_BS) for k in kfs]
+    z_true = [(T[:3, :3] @ sc.pts[j] + T[:3, 3])[2] for T, j in zip(T_c_w, lms, strict=True)]
+    np.testing.assert_allclose(z, z_true, rtol=1e-12)
+
+
 def test_outliers_are_removed_and_marginalisation_keeps_the_estimate():
     sc = Scenario(n_kf=9, seed=1)
     cfg = BackendConfig(window_size=4, lm_max_iterations=15)

@@ -138,10 +138,7 @@ class SlamSystem:
         self.noise_scales = (cfg.imu.noise_scale, cfg.imu.noise_scale)
         self.backend = SlidingWindowBackend(camera.intrinsics, self.T_b_c, self.pim_params, cfg.backend)
         self.tracker = tracker or FeatureTracker(camera, self.T_b_c, cfg.features, cfg.tracker)
-        kcfg = cfg.keyframes
-        if dense is not None:  # the dense system's own parallax trigger (KeyframeConfig)
-            kcfg = dataclasses.replace(kcfg, min_parallax_px=kcfg.dense_min_parallax_px)
-        self.selector = KeyframeSelector(kcfg)
+        self.selector = KeyframeSelector(cfg.keyframes.for_system(dense is not None))
         self.initializer = InitRunner(cfg.init, cfg.dynamic_init, imu, self.T_b_c, camera.fx, cfg.imu.gravity)
         self.init_info: dict | None = None  # how and when the system initialised (metrics.json)
         self.restarts: list[dict] = []  # re-initialisations in the same map frame (metrics.json)

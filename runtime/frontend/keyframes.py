@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,6 +18,10 @@ class KeyframeConfig:
     min_landmarks: int = 25  # tracked landmarks below this -> new keyframe (to triangulate more)
     max_interval_s: float = 0.5  # a keyframe at least this often (bounds the preintegration)
     min_interval_s: float = 0.09  # never two keyframes closer than this
+
+    def for_system(self, dense: bool) -> KeyframeConfig:
+        """The triggers the sparse (``dense=False``) or the dense system uses: the dense one its own parallax."""
+        return replace(self, min_parallax_px=self.dense_min_parallax_px) if dense else self
 
 
 def rotation_compensated_parallax(

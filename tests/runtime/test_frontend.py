@@ -149,6 +149,15 @@ def test_parallax_is_zero_for_pure_rotation_and_selector_triggers():
     assert sel.decide(0.2, 100, 100, 30.0, 100, still=True) == (False, "")
 
 
+def test_dense_and_sparse_systems_have_their_own_parallax_trigger():
+    c = KeyframeConfig(min_parallax_px=35.0, dense_min_parallax_px=18.0, max_interval_s=0.5)
+    sparse, dense = KeyframeSelector(c.for_system(dense=False)), KeyframeSelector(c.for_system(dense=True))
+    # 25 px since the last keyframe: a keyframe for the dense system only
+    assert sparse.decide(0.2, 100, 100, 25.0, 100) == (False, "")
+    assert dense.decide(0.2, 100, 100, 25.0, 100) == (True, "parallax")
+    assert c.for_system(dense=True).max_interval_s == 0.5 and c.min_parallax_px == 35.0  # the rest kept, c unchanged
+
+
 def test_chi_square_bounds_scale_with_the_stated_pixel_sigma():
     # quantiles: chi2_2(0.99) = 9.2103, chi2_1(0.99) = 6.6349
     t = TrackerConfig(pixel_sigma=1.0, chi2_prob=0.99)

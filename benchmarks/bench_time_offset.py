@@ -24,18 +24,13 @@ from benchmarks.common import REPO, cache_dir, slam_machine, write_json
 def estimate(root: Path, inject_s: float = 0.0) -> dict:
     """Rotation and position offsets of ``root``'s ground truth (positions delayed by ``inject_s`` first)."""
     from runtime.io.euroc import read_camera_yaml, read_groundtruth
-    from sim.complete import _read_frames, fit_ground_truth, remove_steps
+    from sim.complete import fit_source
     from sim.time_offset import estimate_time_offsets
 
     mav = root / "mav0"
     gt = read_groundtruth(mav / "state_groundtruth_estimate0" / "data.csv")
-    ts, names = _read_frames(mav / "cam0")
+    ts, names, _, fit, _ = fit_source(gt, mav / "cam0")  # the fit dit-sim imu makes
     camera, T_b_c, _ = read_camera_yaml(mav / "cam0" / "sensor.yaml")
-    keep = (ts >= gt.ts[0] + 200_000_000) & (ts <= gt.ts[-1] - 200_000_000)
-    ts, names = ts[keep], [n for n, k in zip(names, keep, strict=True) if k]
-    sel = (gt.ts >= ts[0] - 1_000_000_000) & (gt.ts <= ts[-1] + 1_000_000_000)
-    p, _ = remove_steps(gt.ts[sel], gt.p_w_b[sel], 0.5, 2.0)
-    fit = fit_ground_truth(gt.ts[sel], p, gt.q_wxyz[sel], 3e-4, 1.5e-4)
     t0 = time.perf_counter()
     est = estimate_time_offsets(
         [mav / "cam0" / "data" / n for n in names],

@@ -41,7 +41,7 @@ from sim.imu import EUROC_ADIS16448, FLIGHT_IMU, ImuErrors, ImuNoise, add_imu_er
 from sim.output import GENERATOR, sim_output, write_info
 from sim.trajectory import smooth_step
 
-__all__ = ["SplineFit", "fit_ground_truth", "remove_steps", "steps_line", "complete_imu"]
+__all__ = ["SplineFit", "fit_ground_truth", "fit_source", "remove_steps", "steps_line", "complete_imu"]
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -211,6 +211,32 @@ class _Warp:
         return np.where(s <= 0.0, self.tau0, tau)
 
 
+def fit_source(
+    gt,
+    cam_dir: Path,
+    sigma_p: float = 3e-4,
+    sigma_q: float = 1.5e-4,
+    step_mps: float | None = 0.5,
+    step_blend_s: float = 2.0,
+) -> tuple[np.ndarray, list[str], np.ndarray, SplineFit, list]:
+    """The frames of ``cam_dir`` inside the ground truth ``gt`` (0.2 s margins) and the fit of ``gt`` around them
+    (1 s margins; steps spread first unless ``step_mps`` is None), as :func:`complete_imu` makes it.
+
+    Returns:
+        ``(frame_ts, names, sel, fit, steps)``: ``sel`` the ground-truth samples fitted.
+    """
+    frame_ts, names = _read_frames(cam_dir)
+    keep = (frame_ts >= gt.ts[0] + 200_000_000) & (frame_ts <= gt.ts[-1] - 200_000_000)
+    if keep.sum() < 2:
+        raise ValueError(f"{cam_dir}: fewer than 2 frames lie inside the ground truth (with 0.2 s margins)")
+    frame_ts, names = frame_ts[keep], [n for n, k in zip(names, keep, strict=True) if k]
+    sel = (gt.ts >= frame_ts[0] - 1_000_000_000) & (gt.ts <= frame_ts[-1] + 1_000_000_000)
+    p_src, steps = gt.p_w_b[sel], []
+    if step_mps is not None:
+        p_src, steps = remove_steps(gt.ts[sel], p_src, step_mps, step_blend_s)
+    return frame_ts, names, sel, fit_ground_truth(gt.ts[sel], p_src, gt.q_wxyz[sel], sigma_p, sigma_q), steps
+
+
 def complete_imu(
     source: str | Path,
     out: str | Path,
@@ -267,17 +293,7 @@ def complete_imu(
     if still < 0 or ramp <= 0:
         raise ValueError(f"still must be >= 0 and ramp > 0, got still={still}, ramp={ramp}")
     gt = read_groundtruth(gt_path)
-    frame_ts, names = _read_frames(cam_src)
-    keep = (frame_ts >= gt.ts[0] + 200_000_000) & (frame_ts <= gt.ts[-1] - 200_000_000)
-    if keep.sum() < 2:
-        raise ValueError(f"{source}: fewer than 2 frames lie inside the ground truth (with 0.2 s margins)")
-    frame_ts, names = frame_ts[keep], [n for n, k in zip(names, keep, strict=True) if k]
-    # fit the ground truth around the frames (1 s margins)
-    sel = (gt.ts >= frame_ts[0] - 1_000_000_000) & (gt.ts <= frame_ts[-1] + 1_000_000_000)
-    p_src, steps = gt.p_w_b[sel], []
-    if step_mps is not None:
-        p_src, steps = remove_steps(gt.ts[sel], p_src, step_mps, step_blend_s)
-    fit = fit_ground_truth(gt.ts[sel], p_src, gt.q_wxyz[sel], sigma_p, sigma_q)
+    frame_ts, names, sel, fit, steps = fit_source(gt, cam_src, sigma_p, sigma_q, step_mps, step_blend_s)
     tg = (gt.ts[sel] - fit.t0_ns) * 1e-9
     inner = (gt.ts[sel] >= frame_ts[0]) & (gt.ts[sel] <= frame_ts[-1])
     e_p = np.linalg.norm(fit.position(tg[inner]) - gt.p_w_b[sel][inner], axis=1)

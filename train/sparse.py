@@ -14,7 +14,9 @@ ground-truth depth is read there:
 
 SLAM-like input (optional): ``outlier_frac`` (training) or ``eval_outlier_frac`` (evaluation) of the samples get
 a wrong depth (the true one times ``exp(U(-1, 1))``, a mis-triangulated map point), and at evaluation
-``eval_noise_std`` adds noise as in training.
+``eval_noise_std`` adds noise as in training. In training, a share ``clean_frac`` of the frames keeps its points
+exact (no noise, no outliers), so that the network learns to tell reliable points from noisy ones instead of
+distrusting every point.
 
 Corners without valid ground truth (depth 0) are never sampled. The sparse channel is a float32 (H, W) map in
 metres with 0 everywhere except at sampled pixels. Randomness comes only from the ``rng`` argument, so a
@@ -49,6 +51,7 @@ class SparseConfig:
         outlier_frac: fraction of training samples whose depth is multiplied by ``exp(U(-1, 1))``.
         eval_noise_std: std of the Gaussian noise added at evaluation [m] (the paper's protocol: 0).
         eval_outlier_frac: ``outlier_frac`` at evaluation (the paper's protocol: 0).
+        clean_frac: probability that a training frame's samples get no noise and no outliers.
     """
 
     num_eval: int = 125
@@ -59,6 +62,7 @@ class SparseConfig:
     outlier_frac: float = 0.0
     eval_noise_std: float = 0.0
     eval_outlier_frac: float = 0.0
+    clean_frac: float = 0.0
 
     def __post_init__(self) -> None:
         lo, hi = self.train_num
@@ -66,9 +70,10 @@ class SparseConfig:
             raise ValueError(f"bad sparse counts num_eval={self.num_eval}, train_num={self.train_num}")
         if self.noise_std < 0 or self.eval_noise_std < 0:
             raise ValueError(f"noise_std={self.noise_std}, eval_noise_std={self.eval_noise_std} must be >= 0")
-        if not (0 <= self.outlier_frac <= 1 and 0 <= self.eval_outlier_frac <= 1):
+        if not all(0 <= f <= 1 for f in (self.outlier_frac, self.eval_outlier_frac, self.clean_frac)):
             raise ValueError(
-                f"outlier_frac={self.outlier_frac}, eval_outlier_frac={self.eval_outlier_frac} not in [0, 1]"
+                f"outlier_frac={self.outlier_frac}, eval_outlier_frac={self.eval_outlier_frac}, "
+                f"clean_frac={self.clean_frac} not in [0, 1]"
             )
         if not 0 < self.fast_threshold < 256:
             raise ValueError(f"fast_threshold={self.fast_threshold} must be in 1..255")
@@ -147,10 +152,12 @@ def sample_sparse_depth(
             uv = np.concatenate([uv, np.stack([extra % w, extra // w], axis=1)], axis=0)
     values = depth[uv[:, 1], uv[:, 0]].astype(np.float32)
     outliers = cfg.outlier_frac if train else cfg.eval_outlier_frac
+    noise = cfg.noise_std if train else cfg.eval_noise_std
+    if train and cfg.clean_frac > 0 and rng.random() < cfg.clean_frac:
+        outliers = noise = 0.0
     if outliers > 0 and len(uv):
         bad = rng.random(len(uv)) < outliers
         values = np.where(bad, values * np.exp(rng.uniform(-1.0, 1.0, len(uv))), values).astype(np.float32)
-    noise = cfg.noise_std if train else cfg.eval_noise_std
     if noise > 0 and len(uv):
         values = np.maximum(values + rng.normal(0.0, noise, len(uv)).astype(np.float32), MIN_SPARSE_DEPTH)
     sparse = np.zeros((h, w), np.float32)

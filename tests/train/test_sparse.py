@@ -38,9 +38,7 @@ def test_eval_fills_up_with_valid_pixels_and_skips_invalid():
     assert len(uv) == 125 and int((sparse > 0).sum()) == 125  # 4 corners + 121 random valid pixels
     assert (uv[:, 0] >= 10).all() and np.all(sparse[uv[:, 1], uv[:, 0]] == 2.5)
     # without fill: only the corners
-    _, uv = sample_sparse_depth(
-        img, depth, np.random.default_rng(0), train=False, cfg=SparseConfig(fill=False)
-    )
+    _, uv = sample_sparse_depth(img, depth, np.random.default_rng(0), train=False, cfg=SparseConfig(fill=False))
     assert len(uv) == 4
     # fewer valid pixels than 125: all of them
     depth[:] = 0.0
@@ -116,3 +114,23 @@ def test_slam_like_eval_noise_and_outliers():
     assert 0.07 < float(np.std(s[uv[:, 1], uv[:, 0]])) < 0.13
     with pytest.raises(ValueError, match="outlier_frac"):
         SparseConfig(outlier_frac=1.5)
+
+
+def test_clean_frac_keeps_a_share_of_training_frames_exact():
+    g = np.random.default_rng(1).integers(0, 256, (64, 64)).astype(np.uint8)  # texture: many FAST corners
+    d = np.full((64, 64), 4.0, np.float32)
+
+    def exact_frames(clean_frac: float) -> list[bool]:
+        cfg = SparseConfig(train_num=(40, 40), noise_std=0.1, outlier_frac=0.05, clean_frac=clean_frac)
+        out = []
+        for seed in range(200):
+            s, uv = sample_sparse_depth(g, d, np.random.default_rng(seed), True, cfg)
+            assert len(uv) == 40
+            out.append(bool(np.all(s[uv[:, 1], uv[:, 0]] == 4.0)))
+        return out
+
+    assert not any(exact_frames(0.0))  # every frame noisy
+    assert all(exact_frames(1.0))
+    assert 0.4 < np.mean(exact_frames(0.5)) < 0.6
+    with pytest.raises(ValueError, match="clean_frac"):
+        SparseConfig(clean_frac=-0.1)

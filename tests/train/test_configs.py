@@ -30,7 +30,7 @@ def test_groups_are_complete():
 def test_default_config(tmp_path):
     cfg = compose_fit([f"paths.output_dir={tmp_path}"])
     assert cfg.model.net.name == "dit" and cfg.modality.name == "grays" and cfg.data.kind == "sim"
-    assert cfg.model.net.code_dim == 8 and cfg.model.kl_weight == 1.0e-3  # see conf/model/dit.yaml
+    assert cfg.model.net.code_dim == 8 and cfg.model.kl_weight == 1.0e-4  # see conf/model/dit.yaml
     assert cfg.model.optimizer._partial_ and list(cfg.model.keys())[0] == "_target_"
     assert cfg.trainer.use_distributed_sampler is False
     assert cfg.callbacks.model_checkpoint.monitor == "val/rmse"

@@ -54,6 +54,7 @@ __all__ = [
     "interpolation_prediction",
     "load_network",
     "main",
+    "protocol_sets",
 ]
 
 log = logging.getLogger("train.evaluate")
@@ -305,7 +306,8 @@ def evaluate_protocol(
     return results
 
 
-def _protocol_sets(cfg: DictConfig, modality: str, height: int, width: int) -> dict[str, object]:
+def protocol_sets(cfg: DictConfig, modality: str, height: int, width: int) -> dict[str, object]:
+    """The frame sets of a protocol evaluation: ``cfg.real`` folders and ``cfg.sim`` rooms, name -> dataset."""
     from runtime.io.rgbd_frames import RgbdFolder
     from train.augment import FrameTransform
     from train.data import NyuFrames, NyuH5Dataset, ensure_synthetic_nyu
@@ -351,7 +353,7 @@ def run_protocol(cfg: DictConfig) -> dict:
         source = str(cfg.ckpt)
     else:
         raise ValueError("model_dir=DIR (exported) or ckpt=PATH is required")
-    sets = _protocol_sets(cfg, predict.modality, predict.height, predict.width)
+    sets = protocol_sets(cfg, predict.modality, predict.height, predict.width)
     num, noise, outliers = PROTOCOLS[str(cfg.protocol)]
     res = {
         "source": source,

@@ -1,0 +1,140 @@
+"""Where an exported depth network wins or loses against the interpolation of its own sparse input.
+
+    python benchmarks/depth_by_distance.py --model runtime/assets/default_model --real ../shared/data/rgbd_real
+        [--sim-val 40] [--out F.json]
+
+The paper's G-S protocol (125 FAST points with their true depth, no noise, code c = 0), on the frame sets of
+``dit-eval depth``. Per set it prints and writes:
+
+* how far the network's depth departs from the sparse depth at the sample pixels, ``|log(depth / sparse)|``
+  (median and 90th percentile). The interpolation is exact there, so a network that departs has learned to
+  distrust its points;
+* the RMSE of the network and of the interpolation by distance to the nearest sample (pixels, at network
+  resolution). It says whether a gap lies next to the points or between them.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+
+#: Distance bins [px] to the nearest sample: [0, 2), [2, 5), ... [20, inf).
+EDGES = (0.0, 2.0, 5.0, 10.0, 20.0, np.inf)
+
+
+def sample_departure(depth: np.ndarray, sparse: np.ndarray) -> np.ndarray:
+    """``|log(depth / sparse)|`` at the pixels with a sample (``sparse > 0``), one value a sample.
+
+    >>> sample_departure(np.array([[2.0, 1.0]]), np.array([[1.0, 0.0]])).round(3).tolist()
+    [0.693]
+    """
+    m = sparse > 0
+    return np.abs(np.log(depth[m] / sparse[m]))
+
+
+def squared_errors_by_distance(pred: np.ndarray, gt: np.ndarray, sparse: np.ndarray, edges=EDGES) -> list[np.ndarray]:
+    """Squared depth errors of the pixels with ground truth, split by their distance to the nearest sample.
+
+    Args:
+        pred, gt, sparse: (H, W) depth [m]; ``gt`` 0 = invalid, ``sparse`` 0 = no sample.
+        edges: increasing bin edges [px]; bin k holds distances in ``[edges[k], edges[k + 1])``.
+
+    Returns:
+        one array of squared errors per bin.
+    """
+    dist = distance_transform_edt(sparse <= 0)
+    valid = gt > 0
+    err = (pred - gt) ** 2
+    return [err[valid & (dist >= lo) & (dist < hi)] for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def evaluate(model_dir: str | Path, sets: dict, edges=EDGES) -> dict:
+    """The two figures of the module docstring for each frame set (``train.evaluate.protocol_sets``)."""
+    from runtime.network import DepthNetwork
+    from train.sparse import interpolate_sparse
+
+    net = DepthNetwork(model_dir)
+    code = np.zeros(net.code_dim, np.float32)
+    out = {}
+    for name, ds in sets.items():
+        dep, sq_net, sq_itp = [], [[] for _ in edges[1:]], [[] for _ in edges[1:]]
+        for i in range(len(ds)):
+            item = ds[i]
+            image, gt = np.asarray(item["image"]), np.asarray(item["depth"])[0]
+            sparse = image[-1]
+            depth = net.prior(image[0], sparse).depth(code)
+            dep.append(sample_departure(depth, sparse))
+            for acc, pred in ((sq_net, depth), (sq_itp, interpolate_sparse(sparse))):
+                for k, e in enumerate(squared_errors_by_distance(pred, gt, sparse, edges)):
+                    acc[k].append(e)
+        d = np.concatenate(dep)
+        bins = []
+        for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+            a, b = np.concatenate(sq_net[k]), np.concatenate(sq_itp[k])
+            bins.append(
+                {
+                    "from_px": float(lo),
+                    "to_px": None if np.isinf(hi) else float(hi),
+                    "pixels": int(a.size),
+                    "network_rmse_m": float(np.sqrt(a.mean())) if a.size else None,
+                    "interpolation_rmse_m": float(np.sqrt(b.mean())) if b.size else None,
+                }
+            )
+        out[name] = {
+            "frames": len(ds),
+            "departure_at_samples": {"median": float(np.median(d)), "p90": float(np.quantile(d, 0.9))},
+            "by_distance": bins,
+        }
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    from omegaconf import OmegaConf
+
+    from benchmarks.common import machine_info, write_json
+    from runtime.network import DepthNetwork
+    from train.evaluate import protocol_sets
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", default="runtime/assets/default_model", help="exported model directory")
+    ap.add_argument("--real", default=None, help="RGB-D frame folders in the rgbd_real layout (or one folder)")
+    ap.add_argument("--sim-val", type=int, default=0, help="fresh realistic synthetic rooms (seed 1000)")
+    ap.add_argument("--limit", type=int, default=None, help="first N frames of each set")
+    ap.add_argument("--out", default=None, help="JSON path")
+    args = ap.parse_args(argv)
+    net = DepthNetwork(args.model)
+    if not net.uses_sparse:
+        raise SystemExit(f"{args.model}: a {net.modality} model has no sparse input to compare with")
+    cfg = OmegaConf.create(
+        {
+            "protocol": "gs",
+            "seed": 0,
+            "real": args.real,
+            "limit": args.limit,
+            "sim": {"n_val": args.sim_val, "seed": 1000, "realism": True, "root": None},
+        }
+    )
+    res = evaluate(args.model, protocol_sets(cfg, net.modality, net.height, net.width))
+    for name, r in res.items():
+        dep = r["departure_at_samples"]
+        print(
+            f"\n{name}: {r['frames']} frames; |log(depth / sparse)| at the samples: median {dep['median']:.4f}, "
+            f"p90 {dep['p90']:.4f}"
+        )
+        print("| distance to nearest sample [px] | pixels | network RMSE [m] | interpolation RMSE [m] |")
+        print("|---|---|---|---|")
+        for b in r["by_distance"]:
+            span = f"{b['from_px']:g}-{b['to_px']:g}" if b["to_px"] is not None else f">= {b['from_px']:g}"
+            n, i = b["network_rmse_m"], b["interpolation_rmse_m"]
+            print(f"| {span} | {b['pixels']} | {n if n is None else f'{n:.3f}'} | {i if i is None else f'{i:.3f}'} |")
+    doc = {"model": str(args.model), "protocol": "gs", "sets": res, "machine": machine_info()}
+    if args.out:
+        print(f"wrote {write_json(args.out, doc)}")
+    return doc
+
+
+if __name__ == "__main__":
+    main()

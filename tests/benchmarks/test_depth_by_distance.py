@@ -1,0 +1,46 @@
+"""benchmarks/depth_by_distance.py: errors by distance to the nearest sample, and the departure at the samples."""
+
+import json
+
+import numpy as np
+
+from benchmarks.depth_by_distance import main, sample_departure, squared_errors_by_distance
+from runtime.network import default_model_dir
+from tests.train.test_evaluate_protocol import _folder
+
+
+def test_errors_fall_into_the_bins_of_their_distance():
+    gt = np.full((21, 21), 2.0)
+    sparse = np.zeros_like(gt)
+    sparse[10, 10] = 2.0
+    yy, xx = np.mgrid[:21, :21]
+    dist = np.hypot(yy - 10, xx - 10)
+    pred = gt + np.where(dist < 2, 1.0, 0.0) + np.where(dist >= 5, 3.0, 0.0)
+    gt[0, 0] = 0.0  # invalid: counted nowhere
+    bins = squared_errors_by_distance(pred, gt, sparse, edges=(0.0, 2.0, 5.0, np.inf))
+    assert [b.size for b in bins] == [
+        int((dist < 2).sum()),
+        int(((dist >= 2) & (dist < 5)).sum()),
+        int((dist >= 5).sum()) - 1,
+    ]
+    assert np.all(bins[0] == 1.0) and np.all(bins[1] == 0.0) and np.all(bins[2] == 9.0)
+    assert sum(b.size for b in bins) == int((gt > 0).sum())
+
+
+def test_departure_is_zero_for_a_depth_that_keeps_its_samples():
+    sparse = np.zeros((4, 4))
+    sparse[1, 2], sparse[3, 0] = 1.5, 4.0
+    assert np.all(sample_departure(np.where(sparse > 0, sparse, 9.0), sparse) == 0.0)
+    np.testing.assert_allclose(sample_departure(np.full((4, 4), 3.0), sparse), np.abs(np.log([2.0, 0.75])))
+
+
+def test_main_on_a_frame_folder(tmp_path, capsys):
+    folder = _folder(tmp_path / "frames", n=2)
+    out = tmp_path / "d.json"
+    doc = main(["--model", str(default_model_dir()), "--real", str(folder), "--out", str(out)])
+    r = doc["sets"]["real frames"]
+    assert r["frames"] == 2 and len(r["by_distance"]) == 5
+    # a slanted plane: the interpolation is exact next to its samples
+    assert r["by_distance"][0]["interpolation_rmse_m"] < 0.02
+    assert json.loads(out.read_text())["sets"]["real frames"]["by_distance"] == r["by_distance"]
+    assert "| 0-2 |" in capsys.readouterr().out

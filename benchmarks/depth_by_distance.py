@@ -16,7 +16,6 @@ The paper's G-S protocol (125 FAST points with their true depth, no noise, code 
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
@@ -51,12 +50,11 @@ def squared_errors_by_distance(pred: np.ndarray, gt: np.ndarray, sparse: np.ndar
     return [err[valid & (dist >= lo) & (dist < hi)] for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
 
 
-def evaluate(model_dir: str | Path, sets: dict, edges=EDGES) -> dict:
-    """The two figures of the module docstring for each frame set (``train.evaluate.protocol_sets``)."""
-    from runtime.network import DepthNetwork
+def evaluate(net, sets: dict, edges=EDGES) -> dict:
+    """The two figures of the module docstring for ``net`` (a :class:`runtime.network.DepthNetwork`) on each frame
+    set (``train.evaluate.protocol_sets``)."""
     from train.sparse import interpolate_sparse
 
-    net = DepthNetwork(model_dir)
     code = np.zeros(net.code_dim, np.float32)
     out = {}
     for name, ds in sets.items():
@@ -95,11 +93,11 @@ def main(argv: list[str] | None = None) -> dict:
     from omegaconf import OmegaConf
 
     from benchmarks.common import machine_info, write_json
-    from runtime.network import DepthNetwork
+    from runtime.network import DepthNetwork, default_model_dir
     from train.evaluate import protocol_sets
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default="runtime/assets/default_model", help="exported model directory")
+    ap.add_argument("--model", default=str(default_model_dir()), help="exported model directory")
     ap.add_argument("--real", default=None, help="RGB-D frame folders in the rgbd_real layout (or one folder)")
     ap.add_argument("--sim-val", type=int, default=0, help="fresh realistic synthetic rooms (seed 1000)")
     ap.add_argument("--limit", type=int, default=None, help="first N frames of each set")
@@ -117,7 +115,7 @@ def main(argv: list[str] | None = None) -> dict:
             "sim": {"n_val": args.sim_val, "seed": 1000, "realism": True, "root": None},
         }
     )
-    res = evaluate(args.model, protocol_sets(cfg, net.modality, net.height, net.width))
+    res = evaluate(net, protocol_sets(cfg, net.modality, net.height, net.width))
     for name, r in res.items():
         dep = r["departure_at_samples"]
         print(

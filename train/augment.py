@@ -18,10 +18,7 @@ in from outside the frame have depth 0 (invalid) and reflected image content.
 
 Photometry. Colour jitter multiplies brightness, contrast and saturation by factors in [0.8, 1.2]
 (torchvision's definitions: contrast and saturation blend with the grey mean / grey image), in that order, on
-the float image in [0, 1]; ``contrast`` may instead give its own range (drawn log-uniform), and a gamma
-``x -> x ** g`` (``g`` log-uniform in ``gamma``) follows. Real cameras span a wider contrast than the rendered
-rooms (grey std 0.18-0.36 on ``../shared/data/rgbd_real`` against 0.15), which the paper's jitter does not
-cover. Grey modalities convert (ITU-R 601 luma, as ``cv2.cvtColor``) after the jitter.
+the float image in [0, 1]. Grey modalities convert (ITU-R 601 luma, as ``cv2.cvtColor``) after the jitter.
 
 Sparse depth (``*s`` modalities) comes from FAST corners of the final grey image, see :mod:`train.sparse`.
 """
@@ -67,17 +64,12 @@ class AugmentConfig:
         rotation_deg: maximum absolute rotation [deg].
         color_jitter: brightness/contrast/saturation factors are drawn in ``[1 - j, 1 + j]``.
         hflip_p: probability of a horizontal flip.
-        contrast: (min, max) contrast factor, drawn log-uniform, in place of ``[1 - j, 1 + j]``; None = the
-            jitter's range.
-        gamma: (min, max) exponent ``g`` of ``x -> x ** g`` after the jitter, drawn log-uniform; (1, 1) = none.
     """
 
     scale: tuple[float, float] = (1.0, 1.5)
     rotation_deg: float = 10.0
     color_jitter: float = 0.2
     hflip_p: float = 0.5
-    contrast: tuple[float, float] | None = None
-    gamma: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
         lo, hi = self.scale
@@ -88,9 +80,6 @@ class AugmentConfig:
                 f"bad augmentation rotation_deg={self.rotation_deg}, color_jitter={self.color_jitter}, "
                 f"hflip_p={self.hflip_p}"
             )
-        for name, r in (("contrast", self.contrast), ("gamma", self.gamma)):
-            if r is not None and not (len(r) == 2 and 0 < r[0] <= r[1]):
-                raise ValueError(f"{name}={r} must be (min, max) with 0 < min <= max")
 
 
 def affine_matrix(
@@ -148,10 +137,6 @@ def warp_frame(
     return out, d
 
 
-def _log_uniform(rng: np.random.Generator, r: tuple[float, float]) -> float:
-    return float(np.exp(rng.uniform(np.log(r[0]), np.log(r[1]))))
-
-
 def to_gray(img: np.ndarray) -> np.ndarray:
     """(H, W, 3) float RGB -> (H, W) float grey (0.299 R + 0.587 G + 0.114 B)."""
     return img @ _LUMA
@@ -183,8 +168,8 @@ class FrameTransform:
 
     ``__call__(rgb (H, W, 3) uint8, depth (H, W) float32 [m], rng)`` returns a dict of float32 arrays:
     ``image`` (Cin, h, w): image channels in [0, 1] (grey or RGB), then the sparse depth [m] for ``*s``;
-    ``depth`` (1, h, w) [m], 0 = invalid; ``params`` (8,) the drawn ``(s, alpha_deg, flip, brightness,
-    contrast, saturation, gamma, n_sparse)`` (identity values at evaluation).
+    ``depth`` (1, h, w) [m], 0 = invalid; ``params`` (7,) the drawn ``(s, alpha_deg, flip, brightness,
+    contrast, saturation, n_sparse)`` (identity values at evaluation).
     """
 
     def __init__(
@@ -222,7 +207,7 @@ class FrameTransform:
         depth = depth.astype(np.float32, copy=False)
         m = self.mapping(rgb.shape[:2])
         s, angle, flip = 1.0, 0.0, False
-        bcs, gamma = np.ones(3), 1.0
+        bcs = np.ones(3)
         if self.train:
             a = self.augment
             s = float(rng.uniform(a.scale[0], a.scale[1]))
@@ -233,12 +218,7 @@ class FrameTransform:
             d = d / np.float32(s)
             j = a.color_jitter
             bcs = rng.uniform(1.0 - j, 1.0 + j, size=3)
-            if a.contrast is not None:
-                bcs[1] = _log_uniform(rng, a.contrast)
             img = color_jitter(img_u8.astype(np.float32) / 255.0, *bcs)
-            if a.gamma[0] != a.gamma[1] or a.gamma[0] != 1.0:
-                gamma = _log_uniform(rng, a.gamma)
-                img = img ** np.float32(gamma)
         else:
             img = m.image_to_network(rgb).astype(np.float32) / 255.0
             d = m.image_to_network(depth, nearest=True)
@@ -254,5 +234,5 @@ class FrameTransform:
         return {
             "image": image,
             "depth": np.ascontiguousarray(d[None], dtype=np.float32),
-            "params": np.array([s, angle, float(flip), *bcs, gamma, n_sparse], np.float32),
+            "params": np.array([s, angle, float(flip), *bcs, n_sparse], np.float32),
         }

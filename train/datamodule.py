@@ -168,9 +168,8 @@ class NyuDataModule(L.LightningDataModule):
         self.num_workers, self.pin_memory = int(num_workers), bool(pin_memory)
         self.seed = int(seed)
         aug = dict(augment or {})
-        for key in ("scale", "contrast", "gamma"):
-            if aug.get(key) is not None:
-                aug[key] = tuple(aug[key])
+        if "scale" in aug:
+            aug["scale"] = tuple(aug["scale"])
         self.augment = AugmentConfig(**aug)
         sp = dict(sparse or {})
         if "train_num" in sp:

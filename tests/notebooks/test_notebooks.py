@@ -109,12 +109,21 @@ def test_01_depth_modalities_tiny(tmp_path):
         "THREADS": 1,
         "TIMING_FRAMES": 1,
         "FIG_FRAMES": 2,
+        "SEEDS": [0, 1],
     }
     nb = execute_notebook(
         NB / "01_depth_modalities.ipynb", params, tmp_path / "01.ipynb", timeout=300, env=_env(tmp_path)
     )
     assert _errors(nb) == []
-    summary = json.loads((out / "ablation" / "ablation.json").read_text())
+    summary = json.loads((out / "ablation_seed0" / "ablation.json").read_text())
+    other = json.loads((out / "ablation_seed1" / "ablation.json").read_text())
+    assert other["overrides"][-1] == "seed=1" and summary["overrides"][-1] == "seed=0"
+    seeds = json.loads((out / "table1_seeds.json").read_text())
+    assert seeds["seeds"] == [0, 1] and set(seeds["order"]) == {"rgb_seed0", "rgb_seed1", "grays_seed0", "grays_seed1"}
+    for seed, summ in ((0, summary), (1, other)):  # the ratio is the cell's RMSE over its own interpolation row
+        c = summ["cells"]["dit_grays"]
+        want = c["metrics"]["rmse"] / c["interpolation"]["rmse"]
+        assert abs(seeds["rmse_over_interpolation"][f"dit_grays_seed{seed}"] - want) < 1e-12
     assert set(summary["cells"]) == {"dit_rgb", "dit_grays"}
     assert all(c["frames"] == 4 and c["net_config"]["height"] == 32 for c in summary["cells"].values())
     rows = [ln.split(" | ")[0] for ln in summary["table"].splitlines()[2:]]

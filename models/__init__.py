@@ -23,7 +23,6 @@ def build_model(
     height: int = 224,
     width: int = 224,
     relative: bool = False,
-    near_gate_px: float = 0.0,
 ) -> nn.Module:
     """Build one of ``dit | codevio8 | codevio32 | fastdepth`` for a modality ``rgb | rgbs | gray | grays``.
 
@@ -36,7 +35,6 @@ def build_model(
         height, width: network input size [px], multiples of 32.
         relative: ``dit`` only: predict relative to the densified sparse input (:class:`~models.ditnet.DiTNet`);
             it has no effect on the modalities without sparse depth.
-        near_gate_px: ``dit``, relative only: the correction fades next to the samples (:class:`DiTNet`).
 
     >>> m = build_model("codevio32", "rgbs", width_mult=0.25, height=64, width=96)
     >>> (m.code_dim, m.in_channels, m.modality, m.attention)
@@ -50,8 +48,6 @@ def build_model(
     default = MODEL_NAMES[name]
     if relative and name != "dit":
         raise ValueError(f"relative=True needs model dit, got {name}")
-    if near_gate_px and not relative:
-        raise ValueError(f"near_gate_px={near_gate_px!r} needs relative=True")
     relative = bool(relative) and modality.endswith("s")  # without sparse input there is nothing to be relative to
     if name == "fastdepth":
         if code_dim is not None:
@@ -59,16 +55,7 @@ def build_model(
         return fastdepth(cin, width_mult, height, width)
     if name == "dit":
         code = default if code_dim is None else code_dim
-        return DiTNet(
-            cin,
-            code,
-            True,
-            width_mult,
-            height,
-            width,
-            relative=bool(relative),
-            near_gate_px=near_gate_px if relative else 0.0,
-        )
+        return DiTNet(cin, code, True, width_mult, height, width, relative=bool(relative))
     if code_dim is not None and code_dim != default:
         raise ValueError(f"{name} has code_dim {default}, got code_dim={code_dim!r} (use dit or codevio())")
     return codevio(cin, default, width_mult, height, width)

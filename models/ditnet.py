@@ -23,10 +23,7 @@ Conventions (also reported by :meth:`DiTNet.describe` for the export manifest):
   correction of the fill:
   ``depth = fill * exp(K tanh(x / K))``, ``K = REL_LOG_RANGE``; the uncertainty is ``scale * (u_rel + softplus)``.
   The fill travels to the decoder as the last channel of the stride-1 feature (``log fill``, metres), so the
-  exported graphs keep their interface. With ``near_gate_px = d0 > 0`` the correction is weighed by
-  :func:`near_sample_gate`, 0 at a sample and about ``1 - exp(-d / d0)`` at distance ``d`` from it:
-  ``depth = fill * exp(w K tanh(x / K))``; ``w`` is computed in ``prior.onnx`` from the sparse channel and
-  follows ``log fill`` as one more channel of the stride-1 feature. Multiplying every input depth by ``a`` multiplies depth and
+  exported graphs keep their interface. Multiplying every input depth by ``a`` multiplies depth and
   uncertainty by ``a``: the network cannot ignore the scale of its sparse input.
 * H and W are multiples of 32, fixed at construction (the code's fully connected layer maps to the
   stride-32 grid); feeding another size raises ``ValueError``.
@@ -84,27 +81,6 @@ def _check_input(x: torch.Tensor, name: str, channels: int, height: int, width: 
         )
 
 
-def near_sample_gate(sparse: torch.Tensor, d0: float) -> torch.Tensor:
-    """Weight of the correction by distance to the nearest sample: ``(1 - exp(-d / d0)) / (1 - exp(-R / d0))``,
-    clamped to 1, with ``d`` the Chebyshev distance [px] to the nearest pixel with ``sparse > 0`` (counted up to
-    ``R = ceil(4 d0)`` by repeated 3x3 max-pooling of the sample mask, plain ONNX ops) and 1 without samples.
-    At a sample the weight is 0, so the depth there is the sample's own.
-
-    >>> m = torch.zeros(1, 1, 5, 9); m[..., 2, 0] = 2.0
-    >>> [round(v, 3) for v in near_sample_gate(m, 1.0)[0, 0, 2].tolist()]
-    [0.0, 0.644, 0.881, 0.968, 1.0, 1.0, 1.0, 1.0, 1.0]
-    """
-    reach = max(1, math.ceil(4.0 * d0))
-    m = (sparse > 0).to(sparse.dtype)
-    d = 1.0 - m
-    for _ in range(reach - 1):
-        m = nn.functional.max_pool2d(m, 3, stride=1, padding=1)
-        d = d + (1.0 - m)
-    w = (1.0 - torch.exp(-d / d0)) / (1.0 - math.exp(-reach / d0))
-    none = (sparse > 0).flatten(1).any(dim=1).logical_not()[:, None, None, None]
-    return torch.where(none, torch.ones_like(w), w.clamp(max=1.0))
-
-
 class UNetStream(nn.Module):
     """Image [+ sparse depth] -> (uncertainty (B,1,H,W) [m], features at strides 32..1).
 
@@ -122,13 +98,11 @@ class UNetStream(nn.Module):
         depth_max: float,
         decoder_channels: tuple[int, ...] = DECODER_CHANNELS,
         relative: bool = False,
-        near_gate_px: float = 0.0,
     ):
         super().__init__()
         if len(decoder_channels) != len(FEATURE_STRIDES):
             raise ValueError(f"decoder_channels={decoder_channels!r} needs {len(FEATURE_STRIDES)} entries")
         self.relative = bool(relative)
-        self.near_gate_px = float(near_gate_px)
         self.norm = RelativeSparseNorm(modality) if relative else InputNorm(modality, depth_min, depth_max)
         self.encoder = MobileNetEncoder(self.norm.out_channels, width_mult)
         dec = [scaled_channels(c, width_mult) for c in decoder_channels]
@@ -159,10 +133,7 @@ class UNetStream(nn.Module):
             feats.append(x)
         if self.relative:
             uncertainty = scale * (REL_UNCERTAINTY_MIN + nn.functional.softplus(self.head(x)))
-            extra = [torch.log(fill.clamp(min=1e-6))]  # + log fill [log m]
-            if self.near_gate_px > 0:
-                extra.append(near_sample_gate(image[:, -1:], self.near_gate_px))  # + the correction's weight
-            feats[-1] = torch.cat([x, *extra], dim=1)
+            feats[-1] = torch.cat([x, torch.log(fill.clamp(min=1e-6))], dim=1)  # + log fill [log m]
         else:
             uncertainty = UNCERTAINTY_MIN + nn.functional.softplus(self.head(x))
         return uncertainty, tuple(feats)
@@ -228,16 +199,13 @@ class DepthDecoder(nn.Module):
         depth_max: float,
         code_injection: bool = True,
         relative: bool = False,
-        near_gate: bool = False,
     ):
         super().__init__()
         self.code_dim = code_dim
         self.channels = tuple(channels)
         self.relative = bool(relative)
-        self.near_gate = bool(near_gate) and self.relative
         self.grid = (height // 32, width // 32)
-        # relative: log fill at stride 1, then the near-sample gate
-        extra = [0] * (len(channels) - 1) + [(1 + self.near_gate) if relative else 0]
+        extra = [0] * (len(channels) - 1) + [1 if relative else 0]  # relative: log fill at stride 1
         self.feature_shapes = tuple(
             (c + e, height // s, width // s) for c, e, s in zip(channels, extra, FEATURE_STRIDES, strict=True)
         )
@@ -262,13 +230,11 @@ class DepthDecoder(nn.Module):
                     f"feature {i} (stride {FEATURE_STRIDES[i]}) must have shape (1 or {b}, {shape[0]}, "
                     f"{shape[1]}, {shape[2]}), got {tuple(f.shape)}"
                 )
-        log_fill = gate = None
+        log_fill = None
         if self.relative:
             *features, last = features
-            n = 1 + self.near_gate
-            features.append(last[:, :-n])
-            log_fill = last[:, -n : last.shape[1] - n + 1]  # (1 or B, 1, H, W)
-            gate = last[:, -1:] if self.near_gate else None
+            features.append(last[:, :-1])
+            log_fill = last[:, -1:]  # (1 or B, 1, H, W)
         x = self.fc(code).reshape(-1, self.channels[0], self.grid[0], self.grid[1])  # (B, c0, H/32, W/32)
         for i, f in enumerate(features):
             x = self.cbam[i](self.fuse[i](x, f.expand(b, -1, -1, -1)))
@@ -278,8 +244,7 @@ class DepthDecoder(nn.Module):
                     x = x + self.inject[i](code)[:, :, None, None]
         if self.relative:
             k = REL_LOG_RANGE
-            correction = k * torch.tanh(self.head(x) / k)
-            return torch.exp(log_fill + (correction if gate is None else gate * correction))
+            return torch.exp(log_fill + k * torch.tanh(self.head(x) / k))
         return self.to_depth(self.head(x))
 
 
@@ -297,8 +262,6 @@ class DiTNet(nn.Module):
         decoder_channels: channels of both decoders at strides 32, 16, 8, 4, 2, 1 (before ``width_mult``).
         code_injection: also add the code to every decoder scale (see :class:`DepthDecoder`).
         relative: predict relative to the densified sparse input (see the module docstring); sparse modalities.
-        near_gate_px: relative mode: weigh the log correction by :func:`near_sample_gate` with this length [px]
-            (0 = no gate): the depth is the sample's at a sample and the correction grows with the distance.
 
     Attributes: ``in_channels``, ``modality``, ``code_dim``, ``attention``, ``height``, ``width``,
     ``prior_net`` (UNet stream), ``recognition`` (CVAE encoder), ``decoder`` (:class:`DepthDecoder`).
@@ -324,12 +287,9 @@ class DiTNet(nn.Module):
         decoder_channels: tuple[int, ...] = DECODER_CHANNELS,
         code_injection: bool = True,
         relative: bool = False,
-        near_gate_px: float = 0.0,
     ):
         super().__init__()
         check_size(height, width)
-        if near_gate_px < 0 or (near_gate_px > 0 and not relative):
-            raise ValueError(f"near_gate_px={near_gate_px!r} must be >= 0, and > 0 only with relative=True")
         if not (isinstance(code_dim, int) and code_dim >= 1):
             raise ValueError(f"code_dim={code_dim!r} must be a positive int")
         self.modality = modality_of(in_channels)
@@ -340,16 +300,15 @@ class DiTNet(nn.Module):
         self.height, self.width = height, width
         self.depth_min, self.depth_max = float(depth_min), float(depth_max)
         self.relative = bool(relative)
-        self.near_gate_px = float(near_gate_px)
 
         self.prior_net = UNetStream(
-            self.modality, width_mult, attention, depth_min, depth_max, decoder_channels, relative, near_gate_px
+            self.modality, width_mult, attention, depth_min, depth_max, decoder_channels, relative
         )
         ch = self.prior_net.channels
         gt_range = REL_GT_RANGE if relative else (depth_min, depth_max)
         self.recognition = DepthRecognition(code_dim, ch[0], height, width, width_mult * depth_encoder_width, *gt_range)
         self.decoder = DepthDecoder(
-            code_dim, ch, height, width, attention, depth_min, depth_max, code_injection, relative, near_gate_px > 0
+            code_dim, ch, height, width, attention, depth_min, depth_max, code_injection, relative
         )
 
         self.apply(init_weights)
@@ -404,8 +363,7 @@ class DiTNet(nn.Module):
         if self.relative:
             if features is None:
                 raise ValueError("a relative DiTNet encodes gt / fill: pass the prior's features")
-            n = 1 + self.decoder.near_gate
-            fill = torch.exp(features[-1][:, -n : features[-1].shape[1] - n + 1])
+            fill = torch.exp(features[-1][:, -1:])
             gt_depth = torch.where(gt_depth > 0, gt_depth / fill, torch.zeros_like(gt_depth))
         return self.recognition(gt_depth, cond)
 
@@ -457,7 +415,6 @@ class DiTNet(nn.Module):
             "attention": self.attention,
             "code_injection": self.decoder.inject is not None,
             "relative": self.relative,
-            "near_gate_px": self.near_gate_px,
             "width_mult": self.width_mult,
             "height": self.height,
             "width": self.width,
@@ -476,14 +433,8 @@ class DiTNet(nn.Module):
             },
             "depth": {
                 "parametrisation": (
-                    (
-                        f"depth = fill * exp({REL_LOG_RANGE} * tanh(x / {REL_LOG_RANGE})), fill = the densified "
-                        "sparse input (log fill is the last channel of the stride-1 feature)"
-                        if self.near_gate_px == 0
-                        else f"depth = fill * exp(w * {REL_LOG_RANGE} * tanh(x / {REL_LOG_RANGE})), fill = the "
-                        "densified sparse input, w = models.ditnet.near_sample_gate(sparse, "
-                        f"{self.near_gate_px:g}) (the stride-1 feature's last two channels: log fill, w)"
-                    )
+                    f"depth = fill * exp({REL_LOG_RANGE} * tanh(x / {REL_LOG_RANGE})), fill = the densified "
+                    "sparse input (log fill is the last channel of the stride-1 feature)"
                     if self.relative
                     else "depth = depth_min * (depth_max / depth_min) ** sigmoid(x)"
                 ),

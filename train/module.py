@@ -91,8 +91,6 @@ def net_spec(net: nn.Module) -> dict:
         spec["code_dim"] = getattr(net, "code_dim", None)
         if getattr(net, "relative", False):
             spec["relative"] = True
-            if getattr(net, "near_gate_px", 0.0):
-                spec["near_gate_px"] = net.near_gate_px
     return spec
 
 

@@ -66,9 +66,9 @@ def test_relative_norm_is_scale_free():
         RelativeSparseNorm("gray")
 
 
-def _relative_net(seed=0, near_gate_px=0.0):
+def _relative_net(seed=0):
     torch.manual_seed(seed)
-    net = build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True, near_gate_px=near_gate_px)
+    net = build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True)
     with torch.no_grad():  # a decoder that visibly depends on the input and the code
         net.decoder.head.weight.normal_(0.0, 0.05)
         for m in net.decoder.modules():  # as benchmarks.common.standin_net: the decoder's statistics only
@@ -147,50 +147,3 @@ def test_onnx_agrees_on_fill_scale_and_depth(tmp_path):
     np.testing.assert_allclose(kf2.depth(code), 2 * kf.depth(code), rtol=1e-4)  # the scale test, in ONNX
     _, J = kf.jacobian(code)
     assert J.shape == (H, W, 8) and np.linalg.matrix_rank(J.reshape(-1, 8)) == 8
-
-
-def test_near_sample_gate_distance_and_limits():
-    from models.ditnet import near_sample_gate
-
-    sp = _sparse(2, seed=3)
-    w = near_sample_gate(sp, 4.0)
-    assert torch.all(w[sp > 0] == 0) and float(w.max()) <= 1.0 and float(w.min()) >= 0.0
-    # against the Chebyshev distance computed directly (scipy), the formula of the docstring
-    from scipy.ndimage import distance_transform_cdt
-
-    d = np.minimum(distance_transform_cdt(sp[0, 0].numpy() <= 0, metric="chessboard"), 16)
-    want = (1 - np.exp(-d / 4.0)) / (1 - np.exp(-16 / 4.0))
-    np.testing.assert_allclose(w[0, 0].numpy(), np.minimum(want, 1.0), atol=1e-5)
-    assert torch.all(near_sample_gate(torch.zeros(1, 1, 8, 8), 4.0) == 1)  # no sample: the correction is whole
-    with pytest.raises(ValueError, match="near_gate_px"):
-        build_model("dit", "grays", width_mult=0.25, height=H, width=W, near_gate_px=4.0)
-
-
-def test_near_gate_keeps_the_samples_for_every_code_in_torch_and_onnx(tmp_path):
-    """With the gate the depth at a sample is the sample's, whatever the code; elsewhere the code still moves it;
-    ONNX Runtime agrees with torch (the gate is computed inside prior.onnx)."""
-    pytest.importorskip("onnxruntime")
-    from export.onnx import export_network
-    from runtime.network import DepthNetwork
-
-    net = _relative_net(near_gate_px=4.0)
-    assert net.describe()["feature_shapes"][-1][0] == net.prior_net.channels[-1] + 2
-    x = torch.cat([torch.rand(2, 1, H, W), _sparse()], 1)
-    hit = x[:, -1:] > 0
-    with torch.no_grad():
-        for code in (torch.zeros(2, 8), 3 * torch.randn(2, 8)):
-            d = net(x, code=code)["depth"]
-            torch.testing.assert_close(d[hit], x[:, -1:][hit], rtol=1e-5, atol=1e-6)
-        moved = (net(x, code=torch.randn(2, 8))["depth"] - net(x)["depth"]).abs()
-    assert float(moved[~hit].mean()) > 1e-3
-    export_network(net, tmp_path, modality="grays", height=H, width=W)
-    dn = DepthNetwork(tmp_path)
-    grey, sparse = x[0, 0].numpy(), x[0, 1].numpy()
-    code = np.random.default_rng(1).normal(size=8).astype(np.float32)
-    kf = dn.prior(grey, sparse)
-    with torch.no_grad():
-        d_t = net(x[:1], code=torch.from_numpy(code[None]))["depth"][0, 0].numpy()
-    np.testing.assert_allclose(kf.depth(code), d_t, rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(kf.depth(code)[sparse > 0], sparse[sparse > 0], rtol=1e-5)
-    _, J = kf.jacobian(code)
-    assert np.abs(J[sparse > 0]).max() < 1e-3 and np.linalg.matrix_rank(J.reshape(-1, 8)) == 8

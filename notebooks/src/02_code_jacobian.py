@@ -27,15 +27,15 @@
 # from N(0, 0.5² I)), δ from 1e-5 to 1 with 2 points per decade, per-dimension sweep with the others at
 # 1e-2; timings with 2 threads, 12 ORT / 3 torch runs per method, the 24-configuration session sweep; CPU
 # only (2 cores shared with other jobs: compare the ratios, not the absolute times). The committed run used
-# the shipped default model (128x128; the second one, 2026-11-25) with its checkpoint and took 79 s (2026-11-25,
-# AMD EPYC, 2 cores shared with other jobs).
+# the shipped default model (128x128; the third one, trained with exact points in half the frames, 2026-11-26)
+# with its checkpoint and took 142 s (2026-11-27, AMD EPYC with AVX-512, 2 cores).
 #
 # **What the committed run shows.** The error curve is the expected V: round-off dominates below δ ≈ 1e-3,
-# truncation above; the minimum is at δ ≈ 3e-3 (about 1 % of mean |J|), and δ = 1e-2 costs about 2x that
-# minimum (about 2 % of mean |J|), the same for every code dimension. On this CPU the ONNX Runtime FD
-# Jacobian (batch 8 + nominal) took 11-19 ms in four runs at different machine loads (this one: below); the
-# same finite differences in torch eager were 3-4x slower, torch's exact forward-mode Jacobian
-# (`autograd.functional.jacobian`, `jacfwd`) 6-12x slower, an exact forward-mode ONNX graph about 2x slower,
+# truncation above; the minimum is at δ ≈ 3e-3 (1-2 % of mean |J|), and δ = 1e-2 costs about 2x that
+# minimum (2-3 % of mean |J|), the same for every code dimension. On these CPUs the ONNX Runtime FD
+# Jacobian (batch 8 + nominal) took 11-19 ms in five runs at different machine loads (this one: below); the
+# same finite differences in torch eager were 3-5x slower, torch's exact forward-mode Jacobian
+# (`autograd.functional.jacobian`, `jacfwd`) 6-15x slower, an exact forward-mode ONNX graph 2-2.6x slower,
 # and reverse mode over all pixels (the DeepFactors way) four orders of magnitude slower.
 #
 # Re-run (from the repository root, venv active; writes under `OUT`, here

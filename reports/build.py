@@ -209,8 +209,9 @@ def _table1() -> list[str]:
         head, _, body = table.partition("\n\n")
         out += [
             "Accuracy on synthetic validation frames after a short CPU training budget per cell (the committed run "
-            "of notebook 01; its intro states the budget). The ordering of the variants is *not* the paper's "
-            "at this budget.",
+            "of notebook 01, training seed 0; its intro states the budget, and the notebook compares the order of "
+            "the variants over two training seeds). Without sparse depth the order changes between seeds: this "
+            "budget cannot rank those variants.",
             "",
             body.strip() if body else head,
             "",

@@ -34,20 +34,23 @@ def sample_departure(depth: np.ndarray, sparse: np.ndarray) -> np.ndarray:
     return np.abs(np.log(depth[m] / sparse[m]))
 
 
-def squared_errors_by_distance(pred: np.ndarray, gt: np.ndarray, sparse: np.ndarray, edges=EDGES) -> list[np.ndarray]:
+def squared_errors_by_distance(
+    preds: list[np.ndarray], gt: np.ndarray, sparse: np.ndarray, edges=EDGES
+) -> list[list[np.ndarray]]:
     """Squared depth errors of the pixels with ground truth, split by their distance to the nearest sample.
 
     Args:
-        pred, gt, sparse: (H, W) depth [m]; ``gt`` 0 = invalid, ``sparse`` 0 = no sample.
+        preds: (H, W) depth predictions [m], scored on the same bins (the distance map is computed once).
+        gt, sparse: (H, W) depth [m]; ``gt`` 0 = invalid, ``sparse`` 0 = no sample.
         edges: increasing bin edges [px]; bin k holds distances in ``[edges[k], edges[k + 1])``.
 
     Returns:
-        one array of squared errors per bin.
+        per prediction, one array of squared errors per bin.
     """
     dist = distance_transform_edt(sparse <= 0)
     valid = gt > 0
-    err = (pred - gt) ** 2
-    return [err[valid & (dist >= lo) & (dist < hi)] for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+    masks = [valid & (dist >= lo) & (dist < hi) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+    return [[((pred - gt) ** 2)[m] for m in masks] for pred in preds]
 
 
 def evaluate(net, sets: dict, edges=EDGES) -> dict:
@@ -65,8 +68,9 @@ def evaluate(net, sets: dict, edges=EDGES) -> dict:
             sparse = image[-1]
             depth = net.prior(image[0], sparse).depth(code)
             dep.append(sample_departure(depth, sparse))
-            for acc, pred in ((sq_net, depth), (sq_itp, interpolate_sparse(sparse))):
-                for k, e in enumerate(squared_errors_by_distance(pred, gt, sparse, edges)):
+            per_pred = squared_errors_by_distance([depth, interpolate_sparse(sparse)], gt, sparse, edges)
+            for acc, bins in zip((sq_net, sq_itp), per_pred, strict=True):
+                for k, e in enumerate(bins):
                     acc[k].append(e)
         d = np.concatenate(dep)
         bins = []

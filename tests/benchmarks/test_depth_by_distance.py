@@ -17,7 +17,8 @@ def test_errors_fall_into_the_bins_of_their_distance():
     dist = np.hypot(yy - 10, xx - 10)
     pred = gt + np.where(dist < 2, 1.0, 0.0) + np.where(dist >= 5, 3.0, 0.0)
     gt[0, 0] = 0.0  # invalid: counted nowhere
-    bins = squared_errors_by_distance(pred, gt, sparse, edges=(0.0, 2.0, 5.0, np.inf))
+    bins, bins_gt = squared_errors_by_distance([pred, gt], gt, sparse, edges=(0.0, 2.0, 5.0, np.inf))
+    assert [b.size for b in bins_gt] == [b.size for b in bins] and all(np.all(b == 0.0) for b in bins_gt)
     assert [b.size for b in bins] == [
         int((dist < 2).sum()),
         int(((dist >= 2) & (dist < 5)).sum()),

@@ -143,7 +143,7 @@ summaries = {
 }
 summary = summaries[SEEDS[0]]
 cells = summary["cells"]
-print(f"ablation: {len(cells)} cells x {len(SEEDS)} seeds in {time.time() - t0:.0f} s (cells trained before are reused)")
+print(f"ablation: {len(cells)} cells x {len(SEEDS)} seeds in {time.time() - t0:.0f} s (finished cells are reused)")
 display(Markdown(f"Training seed {SEEDS[0]}. " + summary["header"] + "\n\n" + summary["table"]))
 
 # %% [markdown]
@@ -162,20 +162,28 @@ for seed, summ in summaries.items():
         for v, c in got.items():
             if "interpolation" in c:
                 ratio[(v, m, seed)] = c["metrics"]["rmse"] / c["interpolation"]["rmse"]
-lines = ["| modality | " + " | ".join(f"seed {s}: best to worst" for s in SEEDS) + " | same order |", "|---" * (len(SEEDS) + 2) + "|"]
+
+
+def md_table(head: list[str], rows: list[list[str]]) -> Markdown:
+    """A markdown table of string cells."""
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"] + ["| " + " | ".join(r) + " |" for r in rows]
+    return Markdown("\n".join(lines))
+
+
+rows = []
 for m in mods:
     orders = [order[(m, s)] for s in SEEDS]
-    names = [", ".join(VARIANT_LABELS[v] for v in o) for o in orders]
-    lines.append(f"| {MODALITY_LABELS[m]} | " + " | ".join(names) + f" | {'yes' if all(o == orders[0] for o in orders) else 'no'} |")
-display(Markdown("\n".join(lines)))
+    same = "yes" if all(o == orders[0] for o in orders) else "no"
+    rows.append([MODALITY_LABELS[m]] + [", ".join(VARIANT_LABELS[v] for v in o) for o in orders] + [same])
+display(md_table(["modality"] + [f"seed {s}: best to worst" for s in SEEDS] + ["same order"], rows))
 if ratio:
-    lines = ["| cell | " + " | ".join(f"RMSE / interpolation, seed {s}" for s in SEEDS) + " |", "|---" * (len(SEEDS) + 1) + "|"]
-    for m in mods:
-        for v in vars_:
-            if (v, m, SEEDS[0]) in ratio:
-                vals = " | ".join(f"{ratio[(v, m, s)]:.3f}" for s in SEEDS if (v, m, s) in ratio)
-                lines.append(f"| {MODALITY_LABELS[m]} / {VARIANT_LABELS[v]} | {vals} |")
-    display(Markdown("\n".join(lines)))
+    rows = [
+        [f"{MODALITY_LABELS[m]} / {VARIANT_LABELS[v]}"] + [f"{ratio[(v, m, s)]:.3f}" for s in SEEDS]
+        for m in mods
+        for v in vars_
+        if (v, m, SEEDS[0]) in ratio
+    ]
+    display(md_table(["cell"] + [f"RMSE / interpolation, seed {s}" for s in SEEDS], rows))
 stability = {
     "seeds": SEEDS,
     "order": {f"{m}_seed{s}": o for (m, s), o in order.items()},

@@ -46,8 +46,12 @@ def find_run_config(ckpt: Path) -> Path:
     )
 
 
-def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
-    """Build the net from the run's config and load the checkpoint's weights (eval mode, CPU)."""
+def load_checkpoint(ckpt: str | Path, image_contrast: float | None = None) -> LoadedCheckpoint:
+    """Build the net from the run's config and load the checkpoint's weights (eval mode, CPU).
+
+    ``image_contrast``: build the network with this contrast matching of its image input
+    (:func:`models.blocks.match_contrast`), whatever it was trained with; None keeps the checkpoint's own.
+    """
     ckpt = Path(ckpt)
     if not ckpt.is_file():
         raise FileNotFoundError(f"{ckpt}: checkpoint not found")
@@ -64,8 +68,8 @@ def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
     own = state.get("net_config") if isinstance(state, dict) else None
     if isinstance(own, dict) and own:
         own = {k: v for k, v in own.items() if k != "_target_"}
-        if own != net_cfg:
-            diff = sorted(k for k in set(own) | set(net_cfg) if own.get(k) != net_cfg.get(k))
+        diff = sorted(k for k in set(own) | set(net_cfg) if own.get(k) != net_cfg.get(k))
+        if diff:
             log.warning(
                 "%s: the checkpoint was trained with %s, but %s says %s; using the checkpoint's own",
                 ckpt,
@@ -74,6 +78,8 @@ def load_checkpoint(ckpt: str | Path) -> LoadedCheckpoint:
                 {k: net_cfg.get(k) for k in diff},
             )
         net_cfg = own
+    if image_contrast is not None:
+        net_cfg = {**net_cfg, "image_contrast": float(image_contrast)}
     try:
         net = models.build_model(**net_cfg)
     except TypeError as e:

@@ -23,6 +23,7 @@ def build_model(
     height: int = 224,
     width: int = 224,
     relative: bool = False,
+    image_contrast: float | None = None,
 ) -> nn.Module:
     """Build one of ``dit | codevio8 | codevio32 | fastdepth`` for a modality ``rgb | rgbs | gray | grays``.
 
@@ -35,6 +36,8 @@ def build_model(
         height, width: network input size [px], multiples of 32.
         relative: ``dit`` only: predict relative to the densified sparse input (:class:`~models.ditnet.DiTNet`);
             it has no effect on the modalities without sparse depth.
+        image_contrast: ``dit`` only: each input image's contrast is matched to this standard deviation inside
+            the network (:func:`~models.blocks.match_contrast`); None = the image as it comes.
 
     >>> m = build_model("codevio32", "rgbs", width_mult=0.25, height=64, width=96)
     >>> (m.code_dim, m.in_channels, m.modality, m.attention)
@@ -48,6 +51,8 @@ def build_model(
     default = MODEL_NAMES[name]
     if relative and name != "dit":
         raise ValueError(f"relative=True needs model dit, got {name}")
+    if image_contrast is not None and name != "dit":
+        raise ValueError(f"image_contrast needs model dit, got {name}")
     relative = bool(relative) and modality.endswith("s")  # without sparse input there is nothing to be relative to
     if name == "fastdepth":
         if code_dim is not None:
@@ -55,7 +60,9 @@ def build_model(
         return fastdepth(cin, width_mult, height, width)
     if name == "dit":
         code = default if code_dim is None else code_dim
-        return DiTNet(cin, code, True, width_mult, height, width, relative=bool(relative))
+        return DiTNet(
+            cin, code, True, width_mult, height, width, relative=bool(relative), image_contrast=image_contrast
+        )
     if code_dim is not None and code_dim != default:
         raise ValueError(f"{name} has code_dim {default}, got code_dim={code_dim!r} (use dit or codevio())")
     return codevio(cin, default, width_mult, height, width)

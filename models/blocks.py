@@ -249,16 +249,33 @@ class AddFusion(nn.Module):
         return f1 + f2
 
 
+def match_contrast(img: torch.Tensor, target_std: float, min_std: float = 0.01) -> torch.Tensor:
+    """Each image's channels rescaled about their own mean to standard deviation ``target_std``, clipped to [0, 1].
+
+    Keeps each image's brightness and removes its absolute contrast, which differs between cameras and scenes far
+    more than the network's training renders show. ``min_std`` bounds the gain on a flat image.
+
+    >>> x = torch.tensor([0.2, 0.4, 0.6, 0.8]).view(1, 1, 2, 2)
+    >>> y = match_contrast(x, 0.05)
+    >>> round(float(y.mean()), 4), round(float(y.std(unbiased=False)), 4)
+    (0.5, 0.05)
+    """
+    mean = img.mean(dim=(2, 3), keepdim=True)
+    std = img.std(dim=(2, 3), keepdim=True, unbiased=False).clamp(min=min_std)
+    return (mean + (img - mean) * (target_std / std)).clamp(0.0, 1.0)
+
+
 class InputNorm(nn.Module):
     """Raw network input -> normalised encoder input; the constants are buffers, so ONNX takes raw inputs.
 
     Input ``(B, Cin, H, W)``: image channels in [0, 1] (1 grey or 3 RGB), then for ``*s`` modalities one
     sparse-depth channel in metres (0 = no sample). Output: ``(image - mean) / std``, and for ``*s`` two more
     channels: the log depth mapped to [-1, 1] over [``depth_min``, ``depth_max``] (0 where no sample) and the
-    sample mask (1 where a sample exists).
+    sample mask (1 where a sample exists). With ``image_contrast`` the image first goes through
+    :func:`match_contrast`.
     """
 
-    def __init__(self, modality: str, depth_min: float, depth_max: float):
+    def __init__(self, modality: str, depth_min: float, depth_max: float, image_contrast: float | None = None):
         super().__init__()
         if modality not in MODALITY_CHANNELS:
             raise ValueError(f"modality={modality!r} not in {sorted(MODALITY_CHANNELS)}")
@@ -268,14 +285,30 @@ class InputNorm(nn.Module):
         self.image_channels = 3 if rgb else 1
         self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
         self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
+        self.image_contrast = _check_contrast(image_contrast)
         self.depth_log = LogDepthNorm(depth_min, depth_max)
         self.out_channels = self.image_channels + (2 if self.sparse else 0)
 
+    def image(self, x: torch.Tensor) -> torch.Tensor:
+        """The image channels of the raw input, normalised."""
+        img = x[:, : self.image_channels]
+        if self.image_contrast is not None:
+            img = match_contrast(img, self.image_contrast)
+        return (img - self.mean) / self.std
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        img = (x[:, : self.image_channels] - self.mean) / self.std
+        img = self.image(x)
         if not self.sparse:
             return img
         return torch.cat([img, *self.depth_log(x[:, self.image_channels :])], dim=1)
+
+
+def _check_contrast(value: float | None) -> float | None:
+    if value is None:
+        return None
+    if not 0.0 < float(value) <= 0.5:
+        raise ValueError(f"image_contrast={value!r} must be None or a standard deviation in (0, 0.5]")
+    return float(value)
 
 
 def sample_scale(sparse: torch.Tensor, default_depth: float = DEFAULT_FILL_M) -> tuple[torch.Tensor, torch.Tensor]:
@@ -317,10 +350,12 @@ class RelativeSparseNorm(nn.Module):
     channel. None of them changes when every depth is multiplied by the same factor: the network sees relative
     depth only.
 
-    ``forward(x, fill)`` returns ``(x, scale (B, 1, 1, 1) [m])``.
+    ``forward(x, fill)`` returns ``(x, scale (B, 1, 1, 1) [m])``. ``image_contrast``: as in :class:`InputNorm`.
     """
 
-    def __init__(self, modality: str, log_range: float = 3.0):
+    image = InputNorm.image
+
+    def __init__(self, modality: str, log_range: float = 3.0, image_contrast: float | None = None):
         super().__init__()
         if modality not in MODALITY_CHANNELS or not modality.endswith("s"):
             raise ValueError(f"relative depth needs a sparse modality (grays, rgbs), got {modality!r}")
@@ -330,11 +365,12 @@ class RelativeSparseNorm(nn.Module):
         self.image_channels = 3 if rgb else 1
         self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
         self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
+        self.image_contrast = _check_contrast(image_contrast)
         self.log_range = float(log_range)
         self.out_channels = self.image_channels + 3
 
     def forward(self, x: torch.Tensor, fill: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        img = (x[:, : self.image_channels] - self.mean) / self.std
+        img = self.image(x)
         sparse = x[:, self.image_channels : self.image_channels + 1]
         mask, scale = sample_scale(sparse)
         r = self.log_range

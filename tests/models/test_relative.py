@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from models import build_model
-from models.blocks import RelativeSparseNorm, linear_fill, sample_scale
+from models.blocks import RelativeSparseNorm, linear_fill, match_contrast, sample_scale
 from runtime.densify import DEFAULT_FILL_M
 
 torch.set_num_threads(1)
@@ -66,9 +66,9 @@ def test_relative_norm_is_scale_free():
         RelativeSparseNorm("gray")
 
 
-def _relative_net(seed=0):
+def _relative_net(seed=0, image_contrast=None):
     torch.manual_seed(seed)
-    net = build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True)
+    net = build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True, image_contrast=image_contrast)
     with torch.no_grad():  # a decoder that visibly depends on the input and the code
         net.decoder.head.weight.normal_(0.0, 0.05)
         for m in net.decoder.modules():  # as benchmarks.common.standin_net: the decoder's statistics only
@@ -147,3 +147,48 @@ def test_onnx_agrees_on_fill_scale_and_depth(tmp_path):
     np.testing.assert_allclose(kf2.depth(code), 2 * kf.depth(code), rtol=1e-4)  # the scale test, in ONNX
     _, J = kf.jacobian(code)
     assert J.shape == (H, W, 8) and np.linalg.matrix_rank(J.reshape(-1, 8)) == 8
+
+
+def test_match_contrast_known_answer_and_flat_image():
+    x = torch.tensor([0.2, 0.4, 0.6, 0.8]).view(1, 1, 2, 2)
+    y = match_contrast(x, 0.1)
+    assert torch.allclose(y.mean(), torch.tensor(0.5)) and abs(float(y.std(unbiased=False)) - 0.1) < 1e-6
+    assert torch.allclose(y, 0.5 + (x - 0.5) * (0.1 / float(x.std(unbiased=False))))
+    flat = torch.full((1, 1, 4, 4), 0.3)
+    flat[0, 0, 0, 0] = 0.301  # std 2.4e-4: the gain is bounded by min_std, not 700x
+    z = match_contrast(flat, 0.1)
+    assert float((z - flat).abs().max()) < 0.01
+    assert float(match_contrast(torch.rand(1, 1, 8, 8) * 40 - 20, 0.4).min()) >= 0.0  # clipped to [0, 1]
+
+
+def test_image_contrast_makes_the_prior_blind_to_image_contrast(tmp_path):
+    """The same scene at twice the contrast gives the same prior, in torch and in prior.onnx; without the option
+    it does not (the test has teeth)."""
+    pytest.importorskip("onnxruntime")
+    from export.onnx import export_network
+    from runtime.network import DepthNetwork
+
+    net = _relative_net(image_contrast=0.166)
+    assert net.describe()["input"]["image_contrast"] == 0.166
+    rng = np.random.default_rng(1)
+    grey = (0.45 + 0.08 * rng.standard_normal((H, W))).clip(0, 1).astype(np.float32)
+    grey2 = (0.45 + 2.0 * (grey - 0.45)).astype(np.float32)  # within [0, 1]: no clipping
+    sparse = _sparse(b=1)[0, 0].numpy()
+    code = rng.normal(size=8).astype(np.float32)
+    export_network(net, tmp_path, modality="grays", height=H, width=W)
+    dn = DepthNetwork(tmp_path)
+    np.testing.assert_allclose(dn.prior(grey2, sparse).depth(code), dn.prior(grey, sparse).depth(code), rtol=1e-4)
+    x = torch.from_numpy(np.stack([grey, sparse])[None])
+    with torch.no_grad():
+        d_t = net.decoder(torch.from_numpy(code[None]), *net.prior(x)[1])[0, 0].numpy()
+    np.testing.assert_allclose(dn.prior(grey, sparse).depth(code), d_t, rtol=1e-4, atol=1e-5)
+    plain = _relative_net()
+    x2 = torch.from_numpy(np.stack([grey2, sparse])[None])
+    c = torch.from_numpy(code[None])
+    with torch.no_grad():
+        d1, d2 = plain.decoder(c, *plain.prior(x)[1]), plain.decoder(c, *plain.prior(x2)[1])
+    assert not torch.allclose(d1, d2, rtol=1e-3)
+    with pytest.raises(ValueError, match="image_contrast"):
+        build_model("fastdepth", "grays", width_mult=0.25, height=H, width=W, image_contrast=0.2)
+    with pytest.raises(ValueError, match="image_contrast"):
+        build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True, image_contrast=0.0)

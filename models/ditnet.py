@@ -12,6 +12,8 @@ Conventions (also reported by :meth:`DiTNet.describe` for the export manifest):
 * Input ``image`` float32 ``(B, Cin, H, W)``: image channels in [0, 1] (grey or RGB), then for ``*s``
   modalities one sparse-depth channel in metres (0 = no sample). Normalisation lives inside (buffers): image
   ``(x - mean) / std``; sparse depth -> log depth scaled to [-1, 1] over [depth_min, depth_max] + sample mask.
+  With ``image_contrast`` the image is first rescaled about its own mean to that standard deviation
+  (:func:`~models.blocks.match_contrast`), so the network does not see the camera's absolute contrast.
 * Depth: ``depth = depth_min * (depth_max / depth_min) ** sigmoid(x)`` metres, default range (0.1, 20) m,
   smooth in the code (no clipping). Uncertainty: ``B = uncertainty_min + softplus(x)`` metres (the scale of
   the Laplace likelihood in Eq. 6), ``uncertainty_min = 0.01`` m.

@@ -318,7 +318,8 @@ def standin_net(
 
 
 def decoder_parity(net, model_dir: Path, seed: int = 0) -> float:
-    """Max |depth_ORT - depth_torch| [m] of the decoder at batch 9 on one random input (same features)."""
+    """Max |depth_ORT - depth_torch| [m] at batch 9 on one random input: the decoder on the same features, and
+    prior + decoder end to end (so a prior built differently, e.g. without the graph's contrast matching, shows)."""
     import torch
 
     from runtime.network import DepthNetwork
@@ -335,10 +336,16 @@ def decoder_parity(net, model_dir: Path, seed: int = 0) -> float:
         ).astype(np.float32)
     kf = dn.prior(img.astype(np.float32), sparse)
     codes = rng.normal(0.0, 0.5, (9, dn.code_dim)).astype(np.float32)
+    chans = [img.transpose(2, 0, 1)] if img.ndim == 3 else [img[None]]
+    if sparse is not None:
+        chans.append(sparse[None])
+    x = torch.from_numpy(np.concatenate(chans)[None].astype(np.float32))
     with torch.no_grad():
         feats = [torch.from_numpy(kf.features[n]) for n in dn.feature_names]
         d_t = net.decoder(torch.from_numpy(codes), *feats)[:, 0].numpy()
-    return float(np.abs(dn.decode(codes, kf.features) - d_t).max())
+        d_e2e = net.decoder(torch.from_numpy(codes), *net.prior(x)[1])[:, 0].numpy()
+    d_o = dn.decode(codes, kf.features)
+    return float(max(np.abs(d_o - d_t).max(), np.abs(d_o - d_e2e).max()))
 
 
 def _export_quiet(net, out_dir: Path, **kw) -> dict:
@@ -473,7 +480,9 @@ def resolve_model(
             )
     from export.checkpoint import load_checkpoint
 
-    loaded = load_checkpoint(ckpt)
+    # the graphs' contrast matching may have been applied at export, not in training: build the torch net alike
+    contrast = (dn.manifest.get("input_normalization") or {}).get("image_contrast") if model_dir is not None else None
+    loaded = load_checkpoint(ckpt, contrast)
     net = _frozen(loaded.net)
     if model_dir is None:
         model_dir = (

@@ -129,3 +129,18 @@ def test_a_missing_model_exits_with_one_line_naming_the_benchmark(tiny, tmp_path
     )
     with pytest.raises(SystemExit, match=r"^bench_x: .*no_model"):
         common.model_and_val_data(args, 1, "bench_x")
+
+
+def test_parity_check_sees_a_prior_built_without_the_graphs_contrast_matching(tmp_path):
+    """The benchmarks pair ONNX graphs with torch weights; the same weights without the exported graph's contrast
+    matching must fail the parity check, with it pass."""
+    from benchmarks.common import decoder_parity, standin_net
+    from export.onnx import export_network
+    from models import build_model
+
+    plain = standin_net("grays", 64, 64)
+    matched = build_model("dit", "grays", width_mult=0.25, height=64, width=64, image_contrast=0.2).eval()
+    matched.load_state_dict(plain.state_dict())
+    export_network(matched, tmp_path, modality="grays", height=64, width=64)
+    assert decoder_parity(matched, tmp_path) < 1e-4
+    assert decoder_parity(plain, tmp_path) > 1e-3

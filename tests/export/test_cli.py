@@ -18,6 +18,11 @@ def _env():
     return env
 
 
+def _export(*overrides: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-c", "from export.cli import main; main()", *overrides]
+    return subprocess.run(cmd, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=300)
+
+
 @pytest.mark.slow
 def test_fit_then_export_then_runtime(tmp_path):
     data = write_fake_nyu(tmp_path / "nyu")
@@ -43,14 +48,7 @@ def test_fit_then_export_then_runtime(tmp_path):
     assert p.returncode == 0, p.stderr[-3000:]
     ckpt = run / "checkpoints" / "last.ckpt"
     out = tmp_path / "model"
-    p = subprocess.run(
-        [sys.executable, "-c", "from export.cli import main; main()", f"ckpt={ckpt}", f"out={out}"],
-        cwd=REPO,
-        env=_env(),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    p = _export(f"ckpt={ckpt}", f"out={out}")
     assert p.returncode == 0, p.stderr[-3000:]
     assert "max |depth onnx - torch|" in p.stdout
     assert "the checkpoint was trained with" not in p.stderr  # its run config and its own net_config agree
@@ -63,15 +61,7 @@ def test_fit_then_export_then_runtime(tmp_path):
     assert kf.depth(np.zeros(8)).shape == (64, 96)
     # the same weights with contrast matching in prior.onnx: doubling the image's contrast changes nothing
     out2 = tmp_path / "model_contrast"
-    p = subprocess.run(
-        [sys.executable, "-c", "from export.cli import main; main()", f"ckpt={ckpt}", f"out={out2}"]
-        + ["image_contrast=0.2"],
-        cwd=REPO,
-        env=_env(),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    p = _export(f"ckpt={ckpt}", f"out={out2}", "image_contrast=0.2")
     assert p.returncode == 0, p.stderr[-3000:]
     assert json.loads((out2 / "manifest.json").read_text())["input_normalization"]["image_contrast"] == 0.2
     rng = np.random.default_rng(0)
@@ -82,18 +72,5 @@ def test_fit_then_export_then_runtime(tmp_path):
 
 
 def test_export_cli_names_a_missing_checkpoint(tmp_path):
-    p = subprocess.run(
-        [
-            sys.executable,
-            "-c",
-            "from export.cli import main; main()",
-            f"ckpt={tmp_path / 'none.ckpt'}",
-            f"out={tmp_path / 'm'}",
-        ],
-        cwd=REPO,
-        env=_env(),
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    p = _export(f"ckpt={tmp_path / 'none.ckpt'}", f"out={tmp_path / 'm'}")
     assert p.returncode != 0 and "none.ckpt" in p.stderr and "not found" in p.stderr

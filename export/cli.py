@@ -26,8 +26,7 @@ def run(cfg: DictConfig) -> dict:
     for noisy in ("onnx_ir", "onnxscript", "torch.onnx"):  # per-pass INFO lines drown the result
         logging.getLogger(noisy).setLevel(logging.WARNING)
     ckpt = Path(str(cfg.ckpt)).expanduser()
-    contrast = cfg.get("image_contrast")
-    loaded = load_checkpoint(ckpt, None if contrast is None else float(contrast))
+    loaded = load_checkpoint(ckpt, cfg.get("image_contrast"))
     parity_inputs = None
     if cfg.get("val_root"):
         from export.checkpoint import validation_inputs

@@ -265,7 +265,32 @@ def match_contrast(img: torch.Tensor, target_std: float, min_std: float = 0.01) 
     return (mean + (img - mean) * (target_std / std)).clamp(0.0, 1.0)
 
 
-class InputNorm(nn.Module):
+class _ImageInput(nn.Module):
+    """The image part of the raw input, shared by the input normalisations: ``modality``, ``image_channels``, the
+    fixed ``mean`` / ``std`` buffers and the optional contrast matching, applied by :meth:`image`."""
+
+    def __init__(self, modality: str, image_contrast: float | None = None):
+        super().__init__()
+        if modality not in MODALITY_CHANNELS:
+            raise ValueError(f"modality={modality!r} not in {sorted(MODALITY_CHANNELS)}")
+        if image_contrast is not None and not 0.0 < float(image_contrast) <= 0.5:
+            raise ValueError(f"image_contrast={image_contrast!r} must be None or a standard deviation in (0, 0.5]")
+        self.modality = modality
+        rgb = modality.startswith("rgb")
+        self.image_channels = 3 if rgb else 1
+        self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
+        self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
+        self.image_contrast = None if image_contrast is None else float(image_contrast)
+
+    def image(self, x: torch.Tensor) -> torch.Tensor:
+        """The image channels of the raw input, normalised."""
+        img = x[:, : self.image_channels]
+        if self.image_contrast is not None:
+            img = match_contrast(img, self.image_contrast)
+        return (img - self.mean) / self.std
+
+
+class InputNorm(_ImageInput):
     """Raw network input -> normalised encoder input; the constants are buffers, so ONNX takes raw inputs.
 
     Input ``(B, Cin, H, W)``: image channels in [0, 1] (1 grey or 3 RGB), then for ``*s`` modalities one
@@ -276,39 +301,16 @@ class InputNorm(nn.Module):
     """
 
     def __init__(self, modality: str, depth_min: float, depth_max: float, image_contrast: float | None = None):
-        super().__init__()
-        if modality not in MODALITY_CHANNELS:
-            raise ValueError(f"modality={modality!r} not in {sorted(MODALITY_CHANNELS)}")
-        self.modality = modality
+        super().__init__(modality, image_contrast)
         self.sparse = modality.endswith("s")
-        rgb = modality.startswith("rgb")
-        self.image_channels = 3 if rgb else 1
-        self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
-        self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
-        self.image_contrast = _check_contrast(image_contrast)
         self.depth_log = LogDepthNorm(depth_min, depth_max)
         self.out_channels = self.image_channels + (2 if self.sparse else 0)
-
-    def image(self, x: torch.Tensor) -> torch.Tensor:
-        """The image channels of the raw input, normalised."""
-        img = x[:, : self.image_channels]
-        if self.image_contrast is not None:
-            img = match_contrast(img, self.image_contrast)
-        return (img - self.mean) / self.std
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         img = self.image(x)
         if not self.sparse:
             return img
         return torch.cat([img, *self.depth_log(x[:, self.image_channels :])], dim=1)
-
-
-def _check_contrast(value: float | None) -> float | None:
-    if value is None:
-        return None
-    if not 0.0 < float(value) <= 0.5:
-        raise ValueError(f"image_contrast={value!r} must be None or a standard deviation in (0, 0.5]")
-    return float(value)
 
 
 def sample_scale(sparse: torch.Tensor, default_depth: float = DEFAULT_FILL_M) -> tuple[torch.Tensor, torch.Tensor]:
@@ -342,7 +344,7 @@ def linear_fill(sparse: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(out)[:, None].to(sparse.device, sparse.dtype)
 
 
-class RelativeSparseNorm(nn.Module):
+class RelativeSparseNorm(_ImageInput):
     """Raw ``*s`` input + its fill -> encoder input in units of the samples' scale, plus the scale.
 
     Output channels: ``(image - mean) / std``, then ``log(sparse / scale)`` at samples (0 elsewhere, clamped to
@@ -353,19 +355,11 @@ class RelativeSparseNorm(nn.Module):
     ``forward(x, fill)`` returns ``(x, scale (B, 1, 1, 1) [m])``. ``image_contrast``: as in :class:`InputNorm`.
     """
 
-    image = InputNorm.image
-
     def __init__(self, modality: str, log_range: float = 3.0, image_contrast: float | None = None):
-        super().__init__()
         if modality not in MODALITY_CHANNELS or not modality.endswith("s"):
             raise ValueError(f"relative depth needs a sparse modality (grays, rgbs), got {modality!r}")
-        self.modality = modality
+        super().__init__(modality, image_contrast)
         self.sparse = True
-        rgb = modality.startswith("rgb")
-        self.image_channels = 3 if rgb else 1
-        self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
-        self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
-        self.image_contrast = _check_contrast(image_contrast)
         self.log_range = float(log_range)
         self.out_channels = self.image_channels + 3
 

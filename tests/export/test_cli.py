@@ -18,9 +18,9 @@ def _env():
     return env
 
 
-def _export(*overrides: str) -> subprocess.CompletedProcess:
+def _export(*overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-c", "from export.cli import main; main()", *overrides]
-    return subprocess.run(cmd, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=300)
+    return subprocess.run(cmd, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.mark.slow
@@ -72,5 +72,5 @@ def test_fit_then_export_then_runtime(tmp_path):
 
 
 def test_export_cli_names_a_missing_checkpoint(tmp_path):
-    p = _export(f"ckpt={tmp_path / 'none.ckpt'}", f"out={tmp_path / 'm'}")
+    p = _export(f"ckpt={tmp_path / 'none.ckpt'}", f"out={tmp_path / 'm'}", timeout=120)
     assert p.returncode != 0 and "none.ckpt" in p.stderr and "not found" in p.stderr

@@ -10,7 +10,10 @@ The paper's G-S protocol (125 FAST points with their true depth, no noise, code 
   (median and 90th percentile). The interpolation is exact there, so a network that departs has learned to
   distrust its points;
 * the RMSE of the network and of the interpolation by distance to the nearest sample (pixels, at network
-  resolution). It says whether a gap lies next to the points or between them.
+  resolution). It says whether a gap lies next to the points or between them;
+* the RMSE with the network's correction of the interpolation scaled by ``alpha``, ``fill * (depth / fill) ** alpha``
+  (0: the interpolation, 1: the network). A best ``alpha`` near 1 says the correction is right and only its size
+  could be tuned; near 0, that on this set it carries little information beyond the interpolation.
 """
 
 from __future__ import annotations
@@ -22,6 +25,17 @@ from scipy.ndimage import distance_transform_edt
 
 #: Distance bins [px] to the nearest sample: [0, 2), [2, 5), ... [20, inf).
 EDGES = (0.0, 2.0, 5.0, 10.0, 20.0, np.inf)
+#: Scales of the network's correction of the interpolation (0: the interpolation, 1: the network).
+ALPHAS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
+
+
+def scaled_correction(depth: np.ndarray, fill: np.ndarray, alpha: float) -> np.ndarray:
+    """``fill * (depth / fill) ** alpha``: the network's correction of the interpolation ``fill``, scaled in log depth.
+
+    >>> scaled_correction(np.array([4.0, 1.0]), np.array([1.0, 1.0]), 0.5).tolist()
+    [2.0, 1.0]
+    """
+    return fill * np.exp(alpha * np.log(depth / fill))
 
 
 def sample_departure(depth: np.ndarray, sparse: np.ndarray) -> np.ndarray:
@@ -54,7 +68,7 @@ def squared_errors_by_distance(
 
 
 def evaluate(net, sets: dict, edges=EDGES) -> dict:
-    """The two figures of the module docstring for ``net`` (a :class:`runtime.network.DepthNetwork`) on each frame
+    """The figures of the module docstring for ``net`` (a :class:`runtime.network.DepthNetwork`) on each frame
     set (``train.evaluate.protocol_sets``)."""
     from train.sparse import interpolate_sparse
 
@@ -62,17 +76,24 @@ def evaluate(net, sets: dict, edges=EDGES) -> dict:
     out = {}
     for name, ds in sets.items():
         dep, sq_net, sq_itp = [], [[] for _ in edges[1:]], [[] for _ in edges[1:]]
+        sq_scaled = [[] for _ in ALPHAS]
         for i in range(len(ds)):
             item = ds[i]
             image, gt = np.asarray(item["image"]), np.asarray(item["depth"])[0]
             sparse = image[-1]
             depth = net.prior(image[0], sparse).depth(code)
             dep.append(sample_departure(depth, sparse))
-            per_pred = squared_errors_by_distance([depth, interpolate_sparse(sparse)], gt, sparse, edges)
+            fill = interpolate_sparse(sparse)
+            per_pred = squared_errors_by_distance([depth, fill], gt, sparse, edges)
+            valid = gt > 0
+            for k, a in enumerate(ALPHAS):
+                sq_scaled[k].append(((scaled_correction(depth, fill, a) - gt) ** 2)[valid])
             for acc, bins in zip((sq_net, sq_itp), per_pred, strict=True):
                 for k, e in enumerate(bins):
                     acc[k].append(e)
         d = np.concatenate(dep)
+        scaled = [float(np.sqrt(np.concatenate(e).mean())) for e in sq_scaled]
+        itp = scaled[ALPHAS.index(0.0)]
         bins = []
         for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
             a, b = np.concatenate(sq_net[k]), np.concatenate(sq_itp[k])
@@ -89,6 +110,11 @@ def evaluate(net, sets: dict, edges=EDGES) -> dict:
             "frames": len(ds),
             "departure_at_samples": {"median": float(np.median(d)), "p90": float(np.quantile(d, 0.9))},
             "by_distance": bins,
+            "correction_scaled": [
+                {"alpha": a, "rmse_m": e, "ratio_to_interpolation": e / itp}
+                for a, e in zip(ALPHAS, scaled, strict=True)
+            ],
+            "best_alpha": ALPHAS[int(np.argmin(scaled))],
         }
     return out
 
@@ -132,6 +158,8 @@ def main(argv: list[str] | None = None) -> dict:
             span = f"{b['from_px']:g}-{b['to_px']:g}" if b["to_px"] is not None else f">= {b['from_px']:g}"
             n, i = b["network_rmse_m"], b["interpolation_rmse_m"]
             print(f"| {span} | {b['pixels']} | {n if n is None else f'{n:.3f}'} | {i if i is None else f'{i:.3f}'} |")
+        cs = "  ".join(f"{c['alpha']:g}: {c['ratio_to_interpolation']:.3f}" for c in r["correction_scaled"])
+        print(f"correction scaled by alpha, RMSE over interpolation: {cs} (best alpha {r['best_alpha']:g})")
     doc = {"model": str(args.model), "protocol": "gs", "sets": res, "machine": machine_info()}
     if args.out:
         print(f"wrote {write_json(args.out, doc)}")

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from benchmarks.depth_by_distance import main, sample_departure, squared_errors_by_distance
+from benchmarks.depth_by_distance import main, sample_departure, scaled_correction, squared_errors_by_distance
 from runtime.network import default_model_dir
 from tests.train.test_evaluate_protocol import _folder
 
@@ -35,6 +35,16 @@ def test_departure_is_zero_for_a_depth_that_keeps_its_samples():
     np.testing.assert_allclose(sample_departure(np.full((4, 4), 3.0), sparse), np.abs(np.log([2.0, 0.75])))
 
 
+def test_scaled_correction_runs_from_the_fill_to_the_network():
+    rng = np.random.default_rng(0)
+    depth, fill = rng.uniform(0.2, 8.0, (5, 7)), rng.uniform(0.2, 8.0, (5, 7))
+    np.testing.assert_allclose(scaled_correction(depth, fill, 0.0), fill)
+    np.testing.assert_allclose(scaled_correction(depth, fill, 1.0), depth)
+    half = scaled_correction(depth, fill, 0.5)
+    np.testing.assert_allclose(half, np.sqrt(depth * fill))  # halfway in log depth
+    assert np.all((half - fill) * (depth - fill) >= 0)  # on the network's side of the fill
+
+
 def test_main_on_a_frame_folder(tmp_path, capsys):
     folder = _folder(tmp_path / "frames", n=2)
     out = tmp_path / "d.json"
@@ -44,4 +54,16 @@ def test_main_on_a_frame_folder(tmp_path, capsys):
     # a slanted plane: the interpolation is exact next to its samples
     assert r["by_distance"][0]["interpolation_rmse_m"] < 0.02
     assert json.loads(out.read_text())["sets"]["real frames"]["by_distance"] == r["by_distance"]
-    assert "| 0-2 |" in capsys.readouterr().out
+    # the scaled corrections' ends are the interpolation and the network, pooled over the distance bins
+    scaled = {c["alpha"]: c for c in r["correction_scaled"]}
+
+    def pooled(key):
+        bins = r["by_distance"]
+        return np.sqrt(sum(b["pixels"] * b[key] ** 2 for b in bins) / sum(b["pixels"] for b in bins))
+
+    assert scaled[0.0]["ratio_to_interpolation"] == 1.0
+    np.testing.assert_allclose(scaled[0.0]["rmse_m"], pooled("interpolation_rmse_m"), rtol=1e-5)
+    np.testing.assert_allclose(scaled[1.0]["rmse_m"], pooled("network_rmse_m"), rtol=1e-5)
+    assert r["best_alpha"] in scaled and scaled[r["best_alpha"]]["rmse_m"] == min(c["rmse_m"] for c in scaled.values())
+    text = capsys.readouterr().out
+    assert "| 0-2 |" in text and "best alpha" in text

@@ -334,12 +334,10 @@ def decoder_parity(net, model_dir: Path, seed: int = 0) -> float:
             rng.uniform(0.5, 6.0, (dn.height, dn.width)),
             0.0,
         ).astype(np.float32)
-    kf = dn.prior(img.astype(np.float32), sparse)
+    img = img.astype(np.float32)
+    kf = dn.prior(img, sparse)
     codes = rng.normal(0.0, 0.5, (9, dn.code_dim)).astype(np.float32)
-    chans = [img.transpose(2, 0, 1)] if img.ndim == 3 else [img[None]]
-    if sparse is not None:
-        chans.append(sparse[None])
-    x = torch.from_numpy(np.concatenate(chans)[None].astype(np.float32))
+    x = torch.from_numpy(dn.make_input(img, sparse))  # the raw input prior.onnx was given
     with torch.no_grad():
         feats = [torch.from_numpy(kf.features[n]) for n in dn.feature_names]
         d_t = net.decoder(torch.from_numpy(codes), *feats)[:, 0].numpy()

@@ -27,6 +27,7 @@ RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "RelocConfig": {"max_attempts": (0, _INF), "max_hamming": (0, 256), "guided_max_hamming": (0, 256)},
     "SlamConfig": {"max_track_views": (2, _INF)},
     "DenseConfig": {"n_code_keyframes": (1, _INF), "relin_tol": (0, _INF)},
+    "DynamicInitConfig": {"accel_bias_weight": (0, _INF)},
     "DepthFactorConfig": {"chunk_size": (1, _INF)},
     "DenseMapConfig": {"stride": (1, _INF)},
 }

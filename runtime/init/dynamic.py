@@ -2,20 +2,24 @@
 
 For a sequence with no period at rest (a MAV already flying, a hand-held camera picked up while moving):
 
-1. **Visual structure from motion** over the frames of the last ``window_s`` (subsampled to ``n_frames``):
+1. **Visual structure from motion** over the frames of the last ``window_s`` (subsampled to ``n_frames``; when
+   those show less than ``min_parallax_px``, the shortest longer window up to ``max_window_s`` that does):
    the essential matrix between the first and the last frame (RANSAC), their common tracks triangulated, every
    other frame's pose by PnP on those points, then all tracks triangulated and refined by a small bundle
    adjustment (GTSAM, Huber). Poses ``T_c0_ck`` are known up to one scale.
 2. **Gyroscope bias**: the visual relative rotations against the gyro's (Gauss-Newton on ``b_g``).
 3. **Linear alignment** (Qin et al., VINS-Mono, IEEE T-RO 2018, Sec. V-B): with the IMU preintegrated between
-   the frames (``alpha``, ``beta`` in the earlier body frame, accelerometer bias 0), the body positions
-   ``P_k = s pc_k - R_c0_bk t_bc`` and velocities ``V_k`` in the frame ``c0`` obey
+   the frames (``alpha``, ``beta`` in the earlier body frame), the body positions ``P_k = s pc_k - R_c0_bk t_bc``
+   and velocities ``V_k`` in the frame ``c0`` obey
 
-       s (pc_{k+1} - pc_k) - V_k dt - g dt^2 / 2 = R_c0_bk alpha_k + (R_c0_bk+1 - R_c0_bk) t_bc
-       V_{k+1} - V_k - g dt = R_c0_bk beta_k
+       s (pc_{k+1} - pc_k) - V_k dt - g dt^2 / 2 = R_c0_bk (alpha_k + J_alpha b_a) + (R_c0_bk+1 - R_c0_bk) t_bc
+       V_{k+1} - V_k - g dt = R_c0_bk (beta_k + J_beta b_a)
 
-   linear in ``(V_0..V_n, g, s)``. Then gravity is refined on the sphere ``|g| = 9.81`` (two tangent
-   parameters, four iterations).
+   linear in ``(V_0..V_n, g, b_a, s)``. Then gravity is refined on the sphere ``|g| = 9.81`` (two tangent
+   parameters, four iterations). VINS-Mono takes the accelerometer bias ``b_a`` as 0. Here it is solved with a
+   zero prior of weight ``accel_bias_weight``, and the window starts from it: a real IMU's bias of 0.1-0.2 m/s^2
+   is larger than a slow camera's accelerations. On the realistic ``tabletop`` preset (5 cm/s), with a 0 bias the
+   scale came out negative for seconds, or several times too large (reports/ablations.md).
 4. **Checks**: positive scale, a plausible median depth of the scaled structure (``min_depth_m``),
    ``| |g| - 9.81 |`` of the unconstrained solve below ``gravity_tol``, the
    alignment's position residual below ``max_residual_m``, the SfM's reprojection RMS below ``max_reproj_px``.
@@ -33,7 +37,7 @@ refines them with the IMU factors (accelerometer bias included).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -51,6 +55,7 @@ class DynamicInitConfig:
 
     enabled: bool = True  # initialise in motion when the sequence is not at rest
     window_s: float = 1.0  # s of frames used (the window grows from the first frame up to this)
+    max_window_s: float = 2.0  # s, longest window tried when ``window_s`` holds too little parallax (slow motion)
     min_window_s: float = 0.5  # s, shortest window tried
     n_frames: int = 10  # frames of the window used (evenly spaced in time), at most backend.window_size
     min_tracks: int = 30  # tracks common to the first and last frame
@@ -60,6 +65,8 @@ class DynamicInitConfig:
     max_reproj_px: float = 2.0  # bundle-adjusted reprojection RMS bound
     gravity_tol: float = 1.0  # m/s^2, | |g| - 9.81 | of the unconstrained solve
     max_residual_m: float = 0.05  # RMS position residual of the alignment
+    accel_bias_weight: float = 0.05  # zero prior on the alignment's accelerometer bias, in velocity-row units
+    # (a bias b costs as much as a velocity residual of weight * b [m/s]); 0: the bias is taken as 0 (VINS-Mono)
     min_depth_m: float = 0.2  # median depth of the scaled structure (closer: corrupt tracks or a wrong scale)
     ba_iterations: int = 15
     hover_max_px: float = 3.0  # rotation-only fit residual below this over the window: turning in place
@@ -83,6 +90,7 @@ class DynamicResult:
     bg: np.ndarray  # (3,) gyroscope bias
     scale: float
     info: dict  # figures of the solve (for the log and metrics.json)
+    ba: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) accelerometer bias (body frame)
 
 
 class InitFailed(Exception):
@@ -256,10 +264,11 @@ def structure_from_motion(frames: list, focal: float, cfg: DynamicInitConfig) ->
 
 
 # ---------------------------------------------------------------------------------------------- alignment
-def _preintegrate(seg, bg: np.ndarray):
-    """``(dR, alpha, beta, dt)`` of one ZOH segment ``(gyro, accel, dt)`` with gyro bias ``bg`` (accel bias 0)."""
+def _preintegrate(seg, bg: np.ndarray, ba: np.ndarray | None = None):
+    """``(dR, alpha, beta, dt)`` of one ZOH segment ``(gyro, accel, dt)`` with gyro bias ``bg`` (accel bias ``ba``,
+    default 0)."""
     gyro, acc, dt = seg
-    R, a, b = propagate(np.eye(3), np.zeros(3), np.zeros(3), gyro, acc, dt, bg=bg, g_w=np.zeros(3))
+    R, a, b = propagate(np.eye(3), np.zeros(3), np.zeros(3), gyro, acc, dt, bg=bg, ba=ba, g_w=np.zeros(3))
     return R, a, b, float(dt.sum())
 
 
@@ -288,7 +297,15 @@ def _tangent_basis(g: np.ndarray) -> np.ndarray:
     return np.stack([b1, np.cross(a, b1)], 1)  # (3, 2)
 
 
-def linear_alignment(pc: np.ndarray, R_c0_b: np.ndarray, t_bc: np.ndarray, pre: list, gravity: float = GRAVITY):
+def linear_alignment(
+    pc: np.ndarray,
+    R_c0_b: np.ndarray,
+    t_bc: np.ndarray,
+    pre: list,
+    gravity: float = GRAVITY,
+    jac: list | None = None,
+    ba_weight: float = 0.0,
+):
     """Scale, gravity ``g_c0`` (3,) and velocities ``V`` (F, 3) in the frame ``c0`` (see the module doc).
 
     Args:
@@ -296,16 +313,21 @@ def linear_alignment(pc: np.ndarray, R_c0_b: np.ndarray, t_bc: np.ndarray, pre: 
         R_c0_b: (F, 3, 3) body orientations in ``c0``.
         t_bc: (3,) camera position in the body frame.
         pre: per interval ``(dR, alpha, beta, dt)``.
+        jac: per interval ``(J_alpha, J_beta)`` (3, 3): the derivatives of ``alpha`` and ``beta`` by the
+            accelerometer bias; None: the bias is taken as 0.
+        ba_weight: weight of the bias's zero prior row (with ``jac``).
 
     Returns:
-        ``(s, g, V, g_norm_free, residual_rms_m)``: ``g`` has norm ``gravity``; ``g_norm_free`` is the norm of
-        the unconstrained solution, ``residual_rms_m`` the RMS of the position rows after refinement.
+        ``(s, g, V, g_norm_free, residual_rms_m, b_a)``: ``g`` has norm ``gravity``; ``g_norm_free`` is the norm of
+        the unconstrained solution, ``residual_rms_m`` the RMS of the position rows after refinement, ``b_a`` (3,)
+        the accelerometer bias (zeros without ``jac``).
     """
     F = pc.shape[0]
 
     def rows(g_fixed: np.ndarray | None, B: np.ndarray | None):
         n_g = 3 if B is None else 2
-        n = 3 * F + n_g + 1
+        n_b = 3 if jac is not None else 0
+        n = 3 * F + n_g + n_b + 1
         A, y = [], []
         for k, (_, al, be, dt) in enumerate(pre):
             Ap = np.zeros((3, n))
@@ -322,8 +344,16 @@ def linear_alignment(pc: np.ndarray, R_c0_b: np.ndarray, t_bc: np.ndarray, pre: 
                 yp = yp + 0.5 * dt * dt * g_fixed
                 yv = yv + dt * g_fixed
             Ap[:, -1] = pc[k + 1] - pc[k]
+            if n_b:
+                Ap[:, -4:-1] = -R_c0_b[k] @ jac[k][0]
+                Av[:, -4:-1] = -R_c0_b[k] @ jac[k][1]
             A += [Ap, Av]
             y += [yp, yv]
+        if n_b:
+            Ab = np.zeros((3, n))
+            Ab[:, -4:-1] = ba_weight * np.eye(3)
+            A.append(Ab)
+            y.append(np.zeros(3))
         return np.concatenate(A), np.concatenate(y)
 
     A, y = rows(None, None)
@@ -339,8 +369,9 @@ def linear_alignment(pc: np.ndarray, R_c0_b: np.ndarray, t_bc: np.ndarray, pre: 
     g = gravity * g / np.linalg.norm(g)
     A, y = rows(g, _tangent_basis(g))
     x = np.linalg.lstsq(A, y, rcond=None)[0]
-    r = (A @ x - y).reshape(-1, 2, 3)[:, 0]
-    return float(x[-1]), g, x[: 3 * F].reshape(F, 3), g_free, float(np.sqrt(np.mean(r**2)))
+    r = (A @ x - y)[: 6 * (F - 1)].reshape(-1, 2, 3)[:, 0]
+    ba = x[-4:-1] if jac is not None else np.zeros(3)
+    return float(x[-1]), g, x[: 3 * F].reshape(F, 3), g_free, float(np.sqrt(np.mean(r**2))), ba
 
 
 def initialize_in_motion(frames: list, imu, T_b_c: np.ndarray, focal: float, cfg: DynamicInitConfig, gravity=GRAVITY):
@@ -357,13 +388,22 @@ def initialize_in_motion(frames: list, imu, T_b_c: np.ndarray, focal: float, cfg
         [np.linalg.norm(so3_log(p[0].T @ R_c0_b[k].T @ R_c0_b[k + 1])) for k, p in enumerate(pre)]
     ).max()
     t_bc = T_b_c[:3, 3]
-    s, g, V, g_free, res = linear_alignment(T_c0_c[:, :3, 3], R_c0_b, t_bc, pre, gravity)
+    jac = None
+    if cfg.accel_bias_weight > 0:  # alpha and beta are linear in the accelerometer bias
+        jac = []
+        for sg, p0 in zip(segs, pre, strict=True):
+            cols = [_preintegrate(sg, bg, e) for e in np.eye(3)]
+            jac.append((np.stack([c[1] - p0[1] for c in cols], 1), np.stack([c[2] - p0[2] for c in cols], 1)))
+    s, g, V, g_free, res, ba = linear_alignment(
+        T_c0_c[:, :3, 3], R_c0_b, t_bc, pre, gravity, jac, cfg.accel_bias_weight
+    )
     info.update(
         scale=round(s, 4),
         gravity_free=round(g_free, 3),
         residual_m=round(res, 4),
         rot_err_deg=round(float(rot_err), 3),
         gyro_bias=np.round(bg, 5).tolist(),
+        accel_bias=np.round(ba, 4).tolist(),
     )
     if not s > 0:
         raise InitFailed(f"alignment scale {s:.3g} is not positive")
@@ -381,7 +421,7 @@ def initialize_in_motion(frames: list, imu, T_b_c: np.ndarray, focal: float, cfg
     P = s * T_c0_c[:, :3, 3] - np.einsum("fij,j->fi", R_c0_b, t_bc)
     T[:, :3, 3] = (P - P[-1]) @ R_w_c0.T  # the newest frame at the origin
     info["span_s"] = round(ns_to_s(int(ts[-1] - ts[0])), 3)
-    return DynamicResult(ts, T, V @ R_w_c0.T, bg, s, info)
+    return DynamicResult(ts, T, V @ R_w_c0.T, bg, s, info, ba)
 
 
 # ---------------------------------------------------------------------------------------------- hovering

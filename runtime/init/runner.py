@@ -7,7 +7,9 @@ Each tracked frame before initialisation is kept (its features, and its image fo
    and tracks pass the rest rule. The frames of that window get the initial pose (the sensor did not move).
 2. **In motion** (:func:`runtime.init.dynamic.initialize_in_motion`), every ``try_every_s`` once the frames
    span ``min_window_s``: structure from motion and the visual-inertial alignment over the frames since
-   ``window_s`` ago (from the first frame while the sequence is younger), ``n_frames`` of them.
+   ``window_s`` ago (from the first frame while the sequence is younger), ``n_frames`` of them; when those frames
+   show less parallax than ``min_parallax_px`` (slow motion), the shortest longer window up to ``max_window_s``
+   that shows it.
 3. **Turning in place** (:func:`runtime.init.dynamic.initialize_hovering`), when the window spans ``window_s``,
    structure from motion failed and the images show rotation only.
 
@@ -80,7 +82,7 @@ class InitRunner:
         """Keep ``snap``; frames older than the windows (or than ``keep_since``, ns, when given, at most
         ``refine_within_s`` back) are dropped, images older than the window too."""
         self.frames.append(snap)
-        recent = snap.ts - s_to_ns(max(self.cfg.still_duration_s, self.dyn.window_s) + 0.5)
+        recent = snap.ts - s_to_ns(max(self.cfg.still_duration_s, self.dyn.window_s, self.dyn.max_window_s) + 0.5)
         oldest = recent if keep_since is None else max(keep_since, snap.ts - s_to_ns(self.dyn.refine_within_s))
         while self.frames and self.frames[0].ts < oldest:
             self.frames.popleft()
@@ -128,11 +130,12 @@ class InitRunner:
         if self.last_try is not None and ns_to_s(ts - self.last_try) < d.try_every_s - 1e-6:
             return None
         self.last_try = ts
-        win = [s for s in self.frames if s.ts >= (ts - s_to_ns(d.window_s) if since is None else since)]
-        idx = np.unique(np.linspace(0, len(win) - 1, min(d.n_frames, len(win))).round().astype(int))
-        sel = [win[i] for i in idx]
+        win, sel, par_px, n = self._window(ts - s_to_ns(d.window_s) if since is None else since)
+        if since is None and n >= d.min_tracks and par_px < d.min_parallax_px:
+            longer = self._longer_window(ts, win[0].ts)
+            if longer is not None:
+                win, sel, par_px, n = longer
         feats = [s.feats for s in sel]
-        _, par_px, n = rotation_only(feats[0], feats[-1], self.focal)  # cheap: skip SfM without translation
         try:
             if n >= d.min_tracks and par_px < d.min_parallax_px:
                 raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
@@ -143,6 +146,9 @@ class InitRunner:
             self.last_reason = str(e)
             if not allow_hover or span < d.window_s:
                 return None
+            if ns_to_s(ts - win[0].ts) > d.window_s + 1e-6:  # turning in place is judged over window_s
+                win, sel, _, _ = self._window(ts - s_to_ns(d.window_s))
+                feats = [s.feats for s in sel]
             try:
                 r = initialize_hovering(feats, self.imu, self.T_b_c, self.focal, d)
                 method = "hover"
@@ -150,7 +156,7 @@ class InitRunner:
                 self.last_reason = f"{e}; {e2}"
                 log.debug("t=%.3f s: no initialisation yet (%s)", ns_to_s(ts), self.last_reason)
                 return None
-        bias = np.concatenate([np.zeros(3), r.bg])
+        bias = np.concatenate([r.ba, r.bg])
         if method == "hover":  # one start state, the window's other frames at their rotations
             kfs = [(sel[-1], r.T_w_b[-1], r.v_w[-1])]
             sigmas = {"vel": d.prior_hover_vel_sigma}
@@ -164,6 +170,36 @@ class InitRunner:
         frames += self._before(sel[0], r.T_w_b[0], r.v_w[0], bias)
         info = dict(r.info, attempts=self.tries)
         return StartState(method, kfs, bias, frames, sigmas, info)
+
+    def _window(self, since: int) -> tuple[list, list, float, int]:
+        """The kept frames from ``since`` (ns), the ``n_frames`` of them used (evenly spaced), and the median
+        rotation-compensated parallax [px] and common tracks of the first and last of those (cheap: it lets the
+        caller skip structure from motion without translation)."""
+        win = [s for s in self.frames if s.ts >= since]
+        idx = np.unique(np.linspace(0, len(win) - 1, min(self.dyn.n_frames, len(win))).round().astype(int))
+        sel = [win[i] for i in idx]
+        _, par_px, n = rotation_only(sel[0].feats, sel[-1].feats, self.focal)
+        return win, sel, par_px, n
+
+    def _longer_window(self, ts: int, first: int) -> tuple[list, list, float, int] | None:
+        """The shortest window longer than ``window_s`` (0.5 s steps up to ``max_window_s``, from the frames kept
+        before ``first``, ns) whose pair has ``min_parallax_px`` and ``min_tracks``; None when there is none.
+        Slow motion needs it: the realistic ``tabletop`` seed 0 (objects at 0.3 m) moved 5-9 px in each 1 s
+        window and started only after 22 s (reports/ablations.md)."""
+        d = self.dyn
+        span = d.window_s
+        while span < d.max_window_s - 1e-6:
+            span = min(span + 0.5, d.max_window_s)
+            since = ts - s_to_ns(span)
+            if self.frames[0].ts >= first:  # no older frames kept
+                return None
+            cand = self._window(since)
+            if cand[0][0].ts >= first:
+                continue
+            first = cand[0][0].ts
+            if cand[3] >= d.min_tracks and cand[2] >= d.min_parallax_px:
+                return cand
+        return None
 
     def _before(self, first: Snapshot, T: np.ndarray, v: np.ndarray, bias: np.ndarray) -> list:
         """Poses of the kept frames older than ``first`` (state ``T``, ``v``), by integrating the IMU backwards,

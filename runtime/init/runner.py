@@ -130,7 +130,8 @@ class InitRunner:
         if self.last_try is not None and ns_to_s(ts - self.last_try) < d.try_every_s - 1e-6:
             return None
         self.last_try = ts
-        win, sel, par_px, n = self._window(ts - s_to_ns(d.window_s) if since is None else since)
+        base = self._window(ts - s_to_ns(d.window_s) if since is None else since)
+        win, sel, par_px, n = base
         if since is None and n >= d.min_tracks and par_px < d.min_parallax_px:
             longer = self._longer_window(ts, win[0].ts)
             if longer is not None:
@@ -146,9 +147,8 @@ class InitRunner:
             self.last_reason = str(e)
             if not allow_hover or span < d.window_s:
                 return None
-            if ns_to_s(ts - win[0].ts) > d.window_s + 1e-6:  # turning in place is judged over window_s
-                win, sel, _, _ = self._window(ts - s_to_ns(d.window_s))
-                feats = [s.feats for s in sel]
+            win, sel = base[:2]  # turning in place is judged over window_s, not over a longer window
+            feats = [s.feats for s in sel]
             try:
                 r = initialize_hovering(feats, self.imu, self.T_b_c, self.focal, d)
                 method = "hover"

@@ -53,7 +53,7 @@ from runtime.init import DynamicInitConfig, InitConfig, imu_rest_stats
 from runtime.init.runner import InitRunner, Snapshot, StartState
 from runtime.reloc import Relocalizer, RelocConfig
 from runtime.reloc.relocalizer import relocalize_pending
-from runtime.start import adapt_imu_noise, backfill_records, seed_window, try_restart
+from runtime.start import adapt_imu_noise, backfill_records, repose_older, seed_window, try_restart
 from runtime.trajectory import FrameRecord, fill_trajectory
 
 log = logging.getLogger(__name__)
@@ -189,6 +189,7 @@ class SlamSystem:
         self.coast_warned = False
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
         self.restart_until: int | None = None  # ns: try an in-motion re-initialisation until then
+        self.older_pending: tuple[int, list] | None = None  # frames before the start's first keyframe (repose_older)
         self.initializer.reset()
 
     def event(self, ts: int, msg: str, level: int = logging.WARNING) -> None:
@@ -524,6 +525,7 @@ class SlamSystem:
             self.backend.optimize()
         if drop.size:
             self.tracker.drop(drop)
+        repose_older(self)
         t0 = self._toc("optimize", t0)
         self.backend.marginalize()
         t0 = self._toc("marginalize", t0)

@@ -15,7 +15,8 @@ Each tracked frame before initialisation is kept (its features, and its image fo
 
 The result names the method and holds the states of the window's frames (keyframes for an in-motion start), the
 poses of the frames in between, and those of the older kept frames by integrating the IMU backwards from the
-window's first state, so that every frame before initialisation gets a pose.
+window's first state, so that every frame before initialisation gets a pose (after an in-motion start the system
+integrates them again from that state as the window refines it: :func:`runtime.start.repose_older`).
 """
 
 from __future__ import annotations
@@ -205,10 +206,16 @@ class InitRunner:
         """Poses of the kept frames older than ``first`` (state ``T``, ``v``), by integrating the IMU backwards,
         at most ``backfill_s`` back (the unknown accelerometer bias grows the error with the square of time)."""
         older = [s for s in self.frames if first.ts - s_to_ns(self.dyn.backfill_s) <= s.ts < first.ts]
-        out = []
-        R, p, t = T[:3, :3], T[:3, 3], first.ts
-        for s in reversed(older):
-            R, p, v = propagate(R, p, v, *self.imu.segment(s.ts, t), bg=bias[3:], ba=bias[:3], backward=True)
-            t = s.ts
-            out.append((s, make_T(R, p)))
-        return out
+        return propagate_back(self.imu, older, first.ts, T, v, bias)
+
+
+def propagate_back(imu, snaps: list, t: int, T: np.ndarray, v: np.ndarray, bias: np.ndarray) -> list:
+    """``[(snapshot, T_w_b)]`` for ``snaps`` (all older than ``t``, ns, oldest first), newest first: the state
+    ``T``, ``v`` at ``t`` integrated backwards through the IMU samples with ``bias`` ([ba, bg])."""
+    out = []
+    R, p = T[:3, :3], T[:3, 3]
+    for s in reversed(snaps):
+        R, p, v = propagate(R, p, v, *imu.segment(s.ts, t), bg=bias[3:], ba=bias[:3], backward=True)
+        t = s.ts
+        out.append((s, make_T(R, p)))
+    return out

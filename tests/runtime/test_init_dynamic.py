@@ -159,3 +159,44 @@ def test_alignment_solves_the_accelerometer_bias():
     assert abs(s_def - 1) < 0.02 and r_def.info["accel_bias"] == np.round(r_def.ba, 4).tolist()
     s_weak, r_weak = run(1e-3)
     assert abs(s_weak - 1) < 0.01 and np.abs(r_weak.ba - ba).max() < 0.03
+
+
+def test_frames_before_an_in_motion_start_follow_the_first_keyframes_state():
+    """The frames older than an in-motion start's first keyframe are integrated backwards from that keyframe's
+    state as the window holds it (here the true one), not from the alignment's; once it has left the window they
+    stay as they are."""
+    from types import SimpleNamespace
+
+    from runtime.backend.state import Keyframe
+    from runtime.init.runner import Snapshot, StartState, propagate_back
+    from runtime.start import backfill_records, repose_older
+
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.5)
+    ba, bg = np.array([0.15, -0.1, 0.05]), np.array([0.004, -0.003, 0.002])
+    ts, g, a = make_imu(m, 3.0, t0_ns=T0)
+    imu = ImuStream(ts, g + bg, a + ba, 200.0)
+    t_kf, t_old = 2.0, 1.0 + np.arange(20) * 0.05  # the first keyframe; 1 s of frames before it
+    T_kf, v_kf = m.body(t_kf)[0], m.velocity(t_kf)[0]
+    snap = Snapshot(40, T0 + int(t_kf * 1e9), None)
+    old = [Snapshot(20 + k, T0 + int(round(t * 1e9)), None) for k, t in enumerate(t_old)]
+    v_aligned = v_kf + np.array([0.2, 0.0, 0.0])  # the alignment's velocity, 0.2 m/s off, and no bias
+    st = StartState("dynamic", [(snap, T_kf, v_aligned)], np.zeros(6), [(s, T_kf) for s in old])
+    true_kf = Keyframe(7, snap.ts, 40, T_kf, v_kf, np.concatenate([ba, bg]))
+    window = {7: true_kf}
+    backend = SimpleNamespace(has_keyframe=lambda k: k in window, keyframe=lambda k: window[k])
+    system = SimpleNamespace(records=[], segment=0, imu=imu, backend=backend, older_pending=None)
+
+    backfill_records(system, st, [7])
+    recs = {r.frame_idx: r for r in system.records}
+    assert sorted(recs) == [20 + k for k in range(20)] + [40]
+    err = [np.linalg.norm((T_kf @ recs[20 + k].T_rel)[:3, 3] - m.body(t)[0][:3, 3]) for k, t in enumerate(t_old)]
+    assert max(err) < 2e-3  # m, over 1 s (discretisation only)
+    assert system.older_pending is not None
+
+    aligned = propagate_back(imu, old, snap.ts, T_kf, v_aligned, np.zeros(6))  # what the alignment's state gives
+    assert np.linalg.norm(aligned[-1][1][:3, 3] - m.body(t_old[0])[0][:3, 3]) > 0.15
+
+    before = recs[20].T_rel.copy()
+    window.clear()  # the keyframe left the window: nothing moves any more
+    repose_older(system)
+    assert system.older_pending is None and np.array_equal(recs[20].T_rel, before)

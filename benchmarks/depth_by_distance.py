@@ -11,6 +11,8 @@ The paper's G-S protocol (125 FAST points with their true depth, no noise, code 
   distrust its points;
 * the RMSE of the network and of the interpolation by distance to the nearest sample (pixels, at network
   resolution). It says whether a gap lies next to the points or between them;
+* the same by the network's relative uncertainty ``B / depth`` (Eq. 6's ``B``) at each pixel. It says whether the
+  uncertainty marks the pixels where the correction fails, which a gate on it would need;
 * the RMSE with the network's correction of the interpolation scaled by ``alpha``, ``fill * (depth / fill) ** alpha``
   (0: the interpolation, 1: the network). A best ``alpha`` near 1 says the correction is right and only its size
   could be tuned; near 0, that on this set it carries little information beyond the interpolation.
@@ -25,6 +27,8 @@ from scipy.ndimage import distance_transform_edt
 
 #: Distance bins [px] to the nearest sample: [0, 2), [2, 5), ... [20, inf).
 EDGES = (0.0, 2.0, 5.0, 10.0, 20.0, np.inf)
+#: Bins of the relative uncertainty ``B / depth``.
+UNC_EDGES = (0.0, 0.05, 0.1, 0.25, np.inf)
 #: Scales of the network's correction of the interpolation (0: the interpolation, 1: the network).
 ALPHAS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
 
@@ -48,23 +52,44 @@ def sample_departure(depth: np.ndarray, sparse: np.ndarray) -> np.ndarray:
     return np.abs(np.log(depth[m] / sparse[m]))
 
 
-def squared_errors_by_distance(
-    preds: list[np.ndarray], gt: np.ndarray, sparse: np.ndarray, edges=EDGES
-) -> list[list[np.ndarray]]:
-    """Squared depth errors of the pixels with ground truth, split by their distance to the nearest sample.
+def squared_errors_binned(preds: list[np.ndarray], gt: np.ndarray, key: np.ndarray, edges) -> list[list[np.ndarray]]:
+    """Squared depth errors of the pixels with ground truth, split by a per-pixel ``key`` (H, W).
 
     Args:
-        preds: (H, W) depth predictions [m], scored on the same bins (the distance map is computed once).
-        gt, sparse: (H, W) depth [m]; ``gt`` 0 = invalid, ``sparse`` 0 = no sample.
-        edges: increasing bin edges [px]; bin k holds distances in ``[edges[k], edges[k + 1])``.
+        preds: (H, W) depth predictions [m], scored on the same bins.
+        gt: (H, W) depth [m], 0 = invalid.
+        edges: increasing bin edges; bin k holds keys in ``[edges[k], edges[k + 1])``.
 
     Returns:
         per prediction, one array of squared errors per bin.
     """
-    dist = distance_transform_edt(sparse <= 0)
     valid = gt > 0
-    masks = [valid & (dist >= lo) & (dist < hi) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+    masks = [valid & (key >= lo) & (key < hi) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
     return [[((pred - gt) ** 2)[m] for m in masks] for pred in preds]
+
+
+def squared_errors_by_distance(
+    preds: list[np.ndarray], gt: np.ndarray, sparse: np.ndarray, edges=EDGES
+) -> list[list[np.ndarray]]:
+    """:func:`squared_errors_binned` by the distance [px] to the nearest sample (``sparse`` > 0)."""
+    return squared_errors_binned(preds, gt, distance_transform_edt(sparse <= 0), edges)
+
+
+def _bin_rows(sq_net: list[list], sq_itp: list[list], edges, lo_key: str, hi_key: str) -> list[dict]:
+    """Pooled RMSE of the network and of the interpolation per bin."""
+    rows = []
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+        a, b = np.concatenate(sq_net[k]), np.concatenate(sq_itp[k])
+        rows.append(
+            {
+                lo_key: float(lo),
+                hi_key: None if np.isinf(hi) else float(hi),
+                "pixels": int(a.size),
+                "network_rmse_m": float(np.sqrt(a.mean())) if a.size else None,
+                "interpolation_rmse_m": float(np.sqrt(b.mean())) if b.size else None,
+            }
+        )
+    return rows
 
 
 def evaluate(net, sets: dict, edges=EDGES) -> dict:
@@ -76,40 +101,35 @@ def evaluate(net, sets: dict, edges=EDGES) -> dict:
     out = {}
     for name, ds in sets.items():
         dep, sq_net, sq_itp = [], [[] for _ in edges[1:]], [[] for _ in edges[1:]]
+        uq_net, uq_itp = [[] for _ in UNC_EDGES[1:]], [[] for _ in UNC_EDGES[1:]]
         sq_scaled = [[] for _ in ALPHAS]
         for i in range(len(ds)):
             item = ds[i]
             image, gt = np.asarray(item["image"]), np.asarray(item["depth"])[0]
             sparse = image[-1]
-            depth = net.prior(image[0], sparse).depth(code)
+            prior = net.prior(image[0], sparse)
+            depth = prior.depth(code)
             dep.append(sample_departure(depth, sparse))
             fill = interpolate_sparse(sparse)
-            per_pred = squared_errors_by_distance([depth, fill], gt, sparse, edges)
             valid = gt > 0
             for k, a in enumerate(ALPHAS):
                 sq_scaled[k].append(((scaled_correction(depth, fill, a) - gt) ** 2)[valid])
-            for acc, bins in zip((sq_net, sq_itp), per_pred, strict=True):
-                for k, e in enumerate(bins):
-                    acc[k].append(e)
+            binned = (
+                (squared_errors_by_distance([depth, fill], gt, sparse, edges), (sq_net, sq_itp)),
+                (squared_errors_binned([depth, fill], gt, prior.uncertainty / depth, UNC_EDGES), (uq_net, uq_itp)),
+            )
+            for per_pred, accs in binned:
+                for acc, bins in zip(accs, per_pred, strict=True):
+                    for k, e in enumerate(bins):
+                        acc[k].append(e)
         d = np.concatenate(dep)
         scaled = [float(np.sqrt(np.concatenate(e).mean())) for e in sq_scaled]
         itp = scaled[ALPHAS.index(0.0)]
-        bins = []
-        for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
-            a, b = np.concatenate(sq_net[k]), np.concatenate(sq_itp[k])
-            bins.append(
-                {
-                    "from_px": float(lo),
-                    "to_px": None if np.isinf(hi) else float(hi),
-                    "pixels": int(a.size),
-                    "network_rmse_m": float(np.sqrt(a.mean())) if a.size else None,
-                    "interpolation_rmse_m": float(np.sqrt(b.mean())) if b.size else None,
-                }
-            )
         out[name] = {
             "frames": len(ds),
             "departure_at_samples": {"median": float(np.median(d)), "p90": float(np.quantile(d, 0.9))},
-            "by_distance": bins,
+            "by_distance": _bin_rows(sq_net, sq_itp, edges, "from_px", "to_px"),
+            "by_relative_uncertainty": _bin_rows(uq_net, uq_itp, UNC_EDGES, "from", "to"),
             "correction_scaled": [
                 {"alpha": a, "rmse_m": e, "ratio_to_interpolation": e / itp}
                 for a, e in zip(ALPHAS, scaled, strict=True)
@@ -117,6 +137,10 @@ def evaluate(net, sets: dict, edges=EDGES) -> dict:
             "best_alpha": ALPHAS[int(np.argmin(scaled))],
         }
     return out
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f}"
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -156,8 +180,12 @@ def main(argv: list[str] | None = None) -> dict:
         print("|---|---|---|---|")
         for b in r["by_distance"]:
             span = f"{b['from_px']:g}-{b['to_px']:g}" if b["to_px"] is not None else f">= {b['from_px']:g}"
-            n, i = b["network_rmse_m"], b["interpolation_rmse_m"]
-            print(f"| {span} | {b['pixels']} | {n if n is None else f'{n:.3f}'} | {i if i is None else f'{i:.3f}'} |")
+            print(f"| {span} | {b['pixels']} | {_fmt(b['network_rmse_m'])} | {_fmt(b['interpolation_rmse_m'])} |")
+        print("| relative uncertainty B / depth | pixels | network RMSE [m] | interpolation RMSE [m] |")
+        print("|---|---|---|---|")
+        for b in r["by_relative_uncertainty"]:
+            span = f"{b['from']:g}-{b['to']:g}" if b["to"] is not None else f">= {b['from']:g}"
+            print(f"| {span} | {b['pixels']} | {_fmt(b['network_rmse_m'])} | {_fmt(b['interpolation_rmse_m'])} |")
         cs = "  ".join(f"{c['alpha']:g}: {c['ratio_to_interpolation']:.3f}" for c in r["correction_scaled"])
         print(f"correction scaled by alpha, RMSE over interpolation: {cs} (best alpha {r['best_alpha']:g})")
     doc = {"model": str(args.model), "protocol": "gs", "sets": res, "machine": machine_info()}

@@ -4,7 +4,13 @@ import json
 
 import numpy as np
 
-from benchmarks.depth_by_distance import main, sample_departure, scaled_correction, squared_errors_by_distance
+from benchmarks.depth_by_distance import (
+    main,
+    sample_departure,
+    scaled_correction,
+    squared_errors_binned,
+    squared_errors_by_distance,
+)
 from runtime.network import default_model_dir
 from tests.train.test_evaluate_protocol import _folder
 
@@ -26,6 +32,14 @@ def test_errors_fall_into_the_bins_of_their_distance():
     ]
     assert np.all(bins[0] == 1.0) and np.all(bins[1] == 0.0) and np.all(bins[2] == 9.0)
     assert sum(b.size for b in bins) == int((gt > 0).sum())
+
+
+def test_errors_fall_into_the_bins_of_their_key():
+    gt = np.array([[1.0, 2.0, 0.0], [4.0, 5.0, 6.0]])
+    key = np.array([[0.01, 0.2, 0.01], [0.07, 0.5, 0.3]])
+    pred = gt + np.array([[1.0, 2.0, 9.0], [3.0, 4.0, 5.0]])
+    (bins,) = squared_errors_binned([pred], gt, key, (0.0, 0.05, 0.25, np.inf))
+    assert [b.tolist() for b in bins] == [[1.0], [4.0, 9.0], [16.0, 25.0]]  # gt 0 counted nowhere
 
 
 def test_departure_is_zero_for_a_depth_that_keeps_its_samples():
@@ -51,6 +65,8 @@ def test_main_on_a_frame_folder(tmp_path, capsys):
     doc = main(["--model", str(default_model_dir()), "--real", str(folder), "--out", str(out)])
     r = doc["sets"]["real frames"]
     assert r["frames"] == 2 and len(r["by_distance"]) == 5
+    # both binnings partition the same valid pixels (the uncertainty is positive)
+    assert sum(b["pixels"] for b in r["by_relative_uncertainty"]) == sum(b["pixels"] for b in r["by_distance"]) > 0
     # a slanted plane: the interpolation is exact next to its samples
     assert r["by_distance"][0]["interpolation_rmse_m"] < 0.02
     assert json.loads(out.read_text())["sets"]["real frames"]["by_distance"] == r["by_distance"]

@@ -162,6 +162,9 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     kf_ids = seed_window(system, st, A)
     t0 = min([k[0].ts for k in st.keyframes] + [f[0].ts for f in st.frames])
     system.records = [r for r in system.records if r.ts < t0]  # the frames since take the new solution
+    kept = {r.ref_kf for r in system.records} | set(kf_ids)
+    for k in [k for k in system.map.history if k not in kept]:  # the discarded start's keyframes
+        del system.map.history[k]
     moved = StartState(
         st.method, [(s, A @ T, v) for s, T, v in st.keyframes], st.bias, [(s, A @ T) for s, T in st.frames]
     )

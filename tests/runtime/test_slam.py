@@ -210,6 +210,9 @@ def test_a_start_turning_in_place_is_refined_in_motion():
     assert len(system.records) >= 0.97 * 160
     ts, T = system.trajectory()
     assert np.all(np.diff(ts) > 0)
+    kts, _ = system.keyframe_trajectory()  # the discarded start's keyframes are gone: one keyframe a time
+    assert np.all(np.diff(kts) > 0)
+    assert set(kts) == {r.ts for r in system.records if r.is_kf}
     met = ate(system, m)
     assert met["ate_se3_rmse_m"] < 0.05, met
 

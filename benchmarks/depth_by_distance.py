@@ -143,6 +143,15 @@ def _fmt(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
+def _print_bins(title: str, rows: list[dict], lo_key: str, hi_key: str) -> None:
+    """A markdown table of :func:`_bin_rows`' rows, ``title`` naming the binned quantity."""
+    print(f"| {title} | pixels | network RMSE [m] | interpolation RMSE [m] |")
+    print("|---|---|---|---|")
+    for b in rows:
+        span = f"{b[lo_key]:g}-{b[hi_key]:g}" if b[hi_key] is not None else f">= {b[lo_key]:g}"
+        print(f"| {span} | {b['pixels']} | {_fmt(b['network_rmse_m'])} | {_fmt(b['interpolation_rmse_m'])} |")
+
+
 def main(argv: list[str] | None = None) -> dict:
     from omegaconf import OmegaConf
 
@@ -176,16 +185,8 @@ def main(argv: list[str] | None = None) -> dict:
             f"\n{name}: {r['frames']} frames; |log(depth / sparse)| at the samples: median {dep['median']:.4f}, "
             f"p90 {dep['p90']:.4f}"
         )
-        print("| distance to nearest sample [px] | pixels | network RMSE [m] | interpolation RMSE [m] |")
-        print("|---|---|---|---|")
-        for b in r["by_distance"]:
-            span = f"{b['from_px']:g}-{b['to_px']:g}" if b["to_px"] is not None else f">= {b['from_px']:g}"
-            print(f"| {span} | {b['pixels']} | {_fmt(b['network_rmse_m'])} | {_fmt(b['interpolation_rmse_m'])} |")
-        print("| relative uncertainty B / depth | pixels | network RMSE [m] | interpolation RMSE [m] |")
-        print("|---|---|---|---|")
-        for b in r["by_relative_uncertainty"]:
-            span = f"{b['from']:g}-{b['to']:g}" if b["to"] is not None else f">= {b['from']:g}"
-            print(f"| {span} | {b['pixels']} | {_fmt(b['network_rmse_m'])} | {_fmt(b['interpolation_rmse_m'])} |")
+        _print_bins("distance to nearest sample [px]", r["by_distance"], "from_px", "to_px")
+        _print_bins("relative uncertainty B / depth", r["by_relative_uncertainty"], "from", "to")
         cs = "  ".join(f"{c['alpha']:g}: {c['ratio_to_interpolation']:.3f}" for c in r["correction_scaled"])
         print(f"correction scaled by alpha, RMSE over interpolation: {cs} (best alpha {r['best_alpha']:g})")
     doc = {"model": str(args.model), "protocol": "gs", "sets": res, "machine": machine_info()}

@@ -3,7 +3,7 @@
     dit-sim euroc out=DIR preset=textured|whitewall|flight|handheld|tabletop duration=SECONDS seed=S
         [imu_noise=true|false] [realism=true|false] [ideal=true] [camera=pinhole|fisheye] [format=asl|bag|ros2|mcap]
     dit-sim nyu out=DIR n_train=N n_val=M seed=S [realism=true]
-    dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [imu_sensor=PATH] seed=S
+    dit-sim imu source=DIR out=DIR [still=SECONDS] [vibration=true|false] [ideal=true] [imu_sensor=PATH] seed=S
 
 The first bare word selects the job (it is turned into the override ``job=...``); everything else is a Hydra
 override of ``conf/sim.yaml`` (``--cfg job`` prints the composed config). Expected failures print one line and
@@ -142,6 +142,7 @@ def _imu(cfg: DictConfig) -> str:
         errors=FLIGHT_IMU if bool(cfg.vibration) else None,
         still=float(cfg.still),
         ramp=float(cfg.ramp),
+        ideal=bool(cfg.ideal),
     )
     f = info["fit"]
     mav0 = Path(out) / "mav0"
@@ -150,7 +151,8 @@ def _imu(cfg: DictConfig) -> str:
         f"  {mav0 / 'cam0'}: {info['frames']} frames linked from {info['source']} "
         f"({info['repeated_first_frames']} repeats of the first image, still {info['still_s']:g} s, "
         f"ramp {info['ramp_s']:g} s)\n"
-        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, vibration={info['vibration']}\n"
+        f"  {mav0 / 'imu0'}: {info['imu_samples']} samples @ {info['imu_rate_hz']} Hz, vibration={info['vibration']}"
+        f"{', ideal (exact samples, zero biases)' if info['ideal'] else ''}\n"
         f"  {mav0 / 'state_groundtruth_estimate0'}: the fitted trajectory at the IMU timestamps\n"
         f"  fit vs the source ground truth: position median {f['pos_err_median_mm']:.3f} mm "
         f"(p95 {f['pos_err_p95_mm']:.3f}), rotation median {f['rot_err_median_deg']:.4f} deg "

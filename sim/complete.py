@@ -252,6 +252,7 @@ def complete_imu(
     sigma_q: float = 1.5e-4,
     step_mps: float | None = 0.5,
     step_blend_s: float = 2.0,
+    ideal: bool = False,
 ) -> dict:
     """Write ``out/mav0`` with ``imu0/``, a consistent ground truth and links to ``source``'s images.
 
@@ -272,6 +273,9 @@ def complete_imu(
         sigma_p, sigma_q: smoothing of the fit (expected ground-truth noise).
         step_mps, step_blend_s: ground-truth steps above this speed excess are spread over this many seconds
             before the fit (:func:`remove_steps`); None keeps them.
+        ideal: write the exact samples of the fitted motion (no noise, biases or vibration; ``errors`` and
+            ``use_gt_bias`` ignored) with ``noise``'s densities in ``imu0/sensor.yaml``, so that an estimator
+            weighs them as a real IMU's: what the images alone limit, with a perfect IMU.
 
     Returns:
         A summary (also written to ``out/imu_info.json``): fit errors, counts, the options.
@@ -346,7 +350,11 @@ def complete_imu(
 
         err = replace(err, gyro_bias_max=0.0, accel_bias_max=0.0)
     dt = dt_ns * 1e-9
-    g_meas, a_meas, bg, ba = add_imu_errors(gyro, accel, dt, rng, noise, err)
+    if ideal:
+        use_gt_bias, errors = False, None
+        g_meas, a_meas, bg, ba = gyro, accel, np.zeros_like(gyro), np.zeros_like(accel)
+    else:
+        g_meas, a_meas, bg, ba = add_imu_errors(gyro, accel, dt, rng, noise, err)
     if use_gt_bias:
         gt_t = (gt.ts - fit.t0_ns) * 1e-9
         bg0 = np.stack([np.interp(t_fit, gt_t, gt.bg[:, i]) for i in range(3)], -1)
@@ -368,6 +376,7 @@ def complete_imu(
         "time_shift_after_ramp_ns": lag_ns,
         "vibration": errors is not None and errors.vibration is not None,
         "use_gt_bias": bool(use_gt_bias),
+        "ideal": bool(ideal),
         "noise": {
             k: getattr(noise, k)
             for k in ("gyro_noise_density", "gyro_random_walk", "accel_noise_density", "accel_random_walk")

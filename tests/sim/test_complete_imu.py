@@ -76,6 +76,23 @@ def test_noiseless_completion_matches_the_truth(source, tmp_path):
     assert seq.imu_ts[0] == seq.frame_ts[0] and seq.imu_ts[-1] <= seq.frame_ts[-1]
 
 
+def test_ideal_completion_is_exact_with_zero_biases_and_keeps_the_noise_densities(source, tmp_path):
+    """``ideal``: the exact samples of the motion (the ground truth's biases and every error left out), while
+    ``imu0/sensor.yaml`` still carries the densities an estimator weighs the samples with."""
+    root, t0 = source
+    noise = ImuNoise(1.7e-4, 1.9e-5, 2.0e-3, 3.0e-3)
+    info = complete_imu(root, tmp_path / "out", noise=noise, ideal=True, sigma_p=1e-6, sigma_q=1e-7)
+    assert info["ideal"] and not info["vibration"] and not info["use_gt_bias"]
+    seq = read_euroc(tmp_path / "out")
+    assert seq.imu.gyro_noise_density == noise.gyro_noise_density
+    assert seq.imu.accel_random_walk == noise.accel_random_walk
+    t = (seq.imu_ts - t0) * 1e-9
+    np.testing.assert_allclose(seq.gyro, np.tile([0.0, 0.0, W], (len(t), 1)), atol=1e-4)
+    expect = np.tile([-W * W * R, 0.0, -GRAVITY_W[2]], (len(t), 1))
+    np.testing.assert_allclose(seq.accel, expect, atol=2e-3)
+    assert not seq.gt.bg.any() and not seq.gt.ba.any()
+
+
 def test_ground_truth_step_is_spread_not_felt_as_an_impulse(tmp_path):
     """A 2 cm one-sample jump of the recorded ground truth: kept, the fit turns it into an accelerometer impulse of
     tens of g; removed, the IMU stays within a fraction of 1 m/s^2 of the true circle's, and the written ground

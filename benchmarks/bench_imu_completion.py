@@ -1,14 +1,18 @@
-"""``dit-sim imu`` on a real sequence: how well the fit matches the ground truth, and GTSAM preintegration.
+"""``dit-sim imu`` on a real sequence: how well the fit matches the ground truth, and the runtime's preintegration.
 
     python benchmarks/bench_imu_completion.py [--source ../shared/data/euroc_MH_05_excerpt] [--window 1.0]
 
-Completes the source with an IMU four times: no noise at all (what remains is the fit and GTSAM's
-piecewise-constant integration of instantaneous samples); white noise + random walk only; + rotor vibration;
-+ a 2 s still period with vibration. Then integrates the written IMU with GTSAM over consecutive ``--window``
-second windows, starting each from the written ground truth (with its biases), and compares the prediction with
-the written ground truth at the window's end. The stated noise is the ``imu0/sensor.yaml`` densities: over T
-seconds position ``sigma_a sqrt(T^3 / 3)``, velocity ``sigma_a sqrt(T)``, rotation ``sigma_g sqrt(T)`` (per
-axis; the 3-D norm is about ``sqrt(3)`` times that). Prints a table and writes
+Completes the source with an IMU five times: no noise at all (what remains is the fit and the runtime's
+piecewise-constant integration of instantaneous samples, ``ImuStream.segment``); white noise + random walk only;
++ rotor vibration; + a 2 s still period with vibration; ``ideal`` (exact samples, the stated densities in
+``sensor.yaml``, so that its NEES can be computed). Then integrates the written IMU as the runtime does
+(``ImuStream.segment`` pieces into GTSAM) over consecutive ``--window`` second windows, starting each from the
+written ground truth (with its biases), and compares the prediction with the written ground truth at the window's
+end. The stated noise is the ``imu0/sensor.yaml`` densities: over T seconds position ``sigma_a sqrt(T^3 / 3)``,
+velocity ``sigma_a sqrt(T)``, rotation ``sigma_g sqrt(T)`` (per axis; the 3-D norm is about ``sqrt(3)`` times
+that). The NEES of the runtime's ``ImuFactor`` over the true states, with the white-noise densities as stated and
+raised x5 (the cap of ``imu.max_noise_scale``), says whether the window's IMU noise model is consistent: 9 on
+average if it is, above if the factor is too confident. Prints a table and writes
 ``benchmarks/results/bench_imu_completion.json``.
 """
 
@@ -24,33 +28,49 @@ import numpy as np
 from benchmarks.common import REPO, write_json
 
 
-def preintegration_errors(root: Path, window_s: float = 1.0) -> dict:
-    """GTSAM preintegration of ``root``'s IMU over consecutive windows against its ground truth."""
+def preintegration_errors(root: Path, window_s: float = 1.0, raises: tuple[float, ...] = (1.0, 5.0)) -> dict:
+    """The runtime's preintegration of ``root``'s IMU over consecutive windows against its ground truth."""
     import gtsam
 
-    from runtime.geometry import inv_T, rotation_angle
+    from runtime.backend.imu import ImuStream, integrate, make_bias, preintegration_params
+    from runtime.geometry import inv_T, rotation_angle, to_pose3
     from runtime.io.euroc import read_euroc
 
     seq = read_euroc(root)
     ts, gt = seq.imu_ts, seq.gt
     if not np.array_equal(gt.ts, ts):
         raise ValueError("the ground truth must share the IMU timestamps")
+    imu = ImuStream.from_sequence(seq)
     n = int(round(window_s * seq.imu.rate_hz))
-    params = gtsam.PreintegrationCombinedParams.MakeSharedU(9.81)
-    ep, ev, er = [], [], []
+    stated = seq.imu.gyro_noise_density > 0
+    params = {r: preintegration_params(seq.imu, None, (r, r)) if stated else None for r in raises}
+    ep, ev, er, nees = [], [], [], {r: [] for r in raises}
     for i in range(0, len(ts) - n, n):
-        bias = gtsam.imuBias.ConstantBias(gt.ba[i], gt.bg[i])
-        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
-        for k in range(i, i + n):
-            pim.integrateMeasurement(seq.accel[k], seq.gyro[k], (ts[k + 1] - ts[k]) * 1e-9)
+        j = i + n
+        bias = make_bias(np.r_[gt.ba[i], gt.bg[i]])
+        pieces = imu.segment(int(ts[i]), int(ts[j]))
+        pim = gtsam.PreintegratedCombinedMeasurements(gtsam.PreintegrationCombinedParams.MakeSharedU(9.81), bias)
+        integrate(pim, *pieces)
         pred = pim.predict(gtsam.NavState(gtsam.Pose3(gt.T_w_b[i]), gt.v_w[i]), bias)
         T = pred.pose().matrix()
-        j = i + n
         rel_p = inv_T(gt.T_w_b[i]) @ T
         rel_g = inv_T(gt.T_w_b[i]) @ gt.T_w_b[j]
         ep.append(np.linalg.norm(rel_p[:3, 3] - rel_g[:3, 3]))
         er.append(np.degrees(rotation_angle(rel_p[:3, :3].T @ rel_g[:3, :3])))
         ev.append(np.linalg.norm(pred.velocity() - gt.v_w[j]))
+        for r, p in params.items():
+            if p is None:
+                continue
+            pim_r = gtsam.PreintegratedImuMeasurements(p, bias)
+            integrate(pim_r, *pieces)
+            vals = gtsam.Values()
+            vals.insert(0, to_pose3(gt.T_w_b[i]))
+            vals.insert(1, gt.v_w[i])
+            vals.insert(2, to_pose3(gt.T_w_b[j]))
+            vals.insert(3, gt.v_w[j])
+            vals.insert(4, bias)
+            e = gtsam.ImuFactor(0, 1, 2, 3, 4, pim_r).whitenedError(vals)
+            nees[r].append(float(e @ e))
     ip = seq.imu
     T = window_s
     return {
@@ -64,6 +84,7 @@ def preintegration_errors(root: Path, window_s: float = 1.0) -> dict:
         "stated_pos_sigma_mm": float(ip.accel_noise_density * np.sqrt(T**3 / 3) * 1e3),
         "stated_vel_sigma_mm_s": float(ip.accel_noise_density * np.sqrt(T) * 1e3),
         "stated_rot_sigma_deg": float(np.degrees(ip.gyro_noise_density * np.sqrt(T))),
+        "nees_mean": {f"x{r:g}": float(np.mean(v)) for r, v in nees.items() if v},
     }
 
 
@@ -87,6 +108,7 @@ def main(argv: list[str] | None = None) -> dict:
             ("noise_only", dict(errors=None)),
             ("vibration", dict(errors=FLIGHT_IMU)),
             ("vibration_still2s", dict(errors=FLIGHT_IMU, still=2.0)),
+            ("ideal", dict(ideal=True)),
         ):
             out = Path(d) / name
             infos[name] = info = complete_imu(src, out, **kw)
@@ -111,13 +133,14 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"GTSAM preintegration over {args.window:g} s windows vs the written ground truth (3-D error norms):")
     print(
         f"{'variant':20s} {'windows':>7s} {'pos med':>9s} {'pos p95':>9s} {'vel med':>9s} {'rot med':>9s} "
-        f"{'rot p95':>9s}"
+        f"{'rot p95':>9s} {'NEES x1':>9s} {'NEES x5':>9s}"
     )
     for name, r in rows.items():
         p = r["preintegration"]
         print(
             f"{name:20s} {p['windows']:7d} {p['pos_err_median_mm']:7.2f}mm {p['pos_err_p95_mm']:7.2f}mm "
-            f"{p['vel_err_median_mm_s']:5.1f}mm/s {p['rot_err_median_deg']:7.4f}d {p['rot_err_p95_deg']:7.4f}d"
+            f"{p['vel_err_median_mm_s']:5.1f}mm/s {p['rot_err_median_deg']:7.4f}d {p['rot_err_p95_deg']:7.4f}d "
+            + " ".join(f"{p['nees_mean'].get(k, float('nan')):9.2f}" for k in ("x1", "x5"))
         )
     p = rows["noise_only"]["preintegration"]
     print(

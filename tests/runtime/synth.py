@@ -209,8 +209,11 @@ class FakeTracker:
         return self._features(ts)
 
     def rename(self, old, new):
-        m = dict(zip(np.asarray(old).tolist(), np.asarray(new).tolist(), strict=False))
+        """As ``FeatureTracker.rename``: returns the mask of the pairs applied (here all of them)."""
+        old, new = np.asarray(old, np.int64).reshape(-1), np.asarray(new, np.int64).reshape(-1)
+        m = dict(zip(old.tolist(), new.tolist(), strict=True))
         self.ids = np.array([m.get(int(j), int(j)) for j in self.ids], dtype=np.int64)
+        return np.ones(old.size, dtype=bool)
 
     def drop(self, ids):
         keep = ~np.isin(self.ids, ids)

@@ -278,7 +278,7 @@ def complete_imu(
             weighs them as a real IMU's: what the images alone limit, with a perfect IMU.
 
     Returns:
-        A summary (also written to ``out/imu_info.json``): fit errors, counts, the options.
+        A summary (also written to ``out/sim_info.json``): fit errors, counts, the options.
     """
     source, out = Path(source).resolve(), Path(out)
     mav_src = source / "mav0" if (source / "mav0").is_dir() else source

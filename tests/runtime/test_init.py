@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from runtime.geometry import GRAVITY, so3_exp
-from runtime.init import InitConfig, StaticInitializer, gravity_aligned_rotation
+from runtime.init import InitConfig, StaticInitializer, gravity_aligned_rotation, imu_rest_stats
 
 
 def test_gravity_aligned_rotation_known_answers():
@@ -154,3 +154,21 @@ def test_static_start_needs_image_evidence_of_rest_when_the_images_have_tracks()
     r = _runner_at_rest()
     out = [r.step(_frame(r, k, np.arange(5) + 5 * k, grid[:5])) for k in range(21)]
     assert out[-1] is not None and r.static.last_stats["flow_px"] is None
+
+
+def test_noise_level_leaves_out_smooth_motion():
+    """A sensor turning back and forth at up to 1.5 rad/s (and accelerating) with white noise of known sigma: the
+    noise level is that sigma, the motion inside the 50 ms blocks does not count."""
+    rng = np.random.default_rng(3)
+    ts = np.arange(400, dtype=np.int64) * 5_000_000  # 2 s at 200 Hz
+    t = ts * 1e-9
+    motion = np.stack([1.5 * np.sin(2 * np.pi * 1.5 * t), 0.5 * np.cos(2 * np.pi * 2.0 * t), 0.2 * t], -1)
+    sg, sa = 0.004, 0.03
+    gyro = motion + rng.normal(0, sg, motion.shape)
+    acc = np.array([0.0, 0.0, GRAVITY]) + 3.0 * motion + rng.normal(0, sa, motion.shape)
+    st = imu_rest_stats(ts, gyro, acc, 0.05, GRAVITY)
+    assert st.gyro_noise == pytest.approx(sg, rel=0.1) and st.accel_noise == pytest.approx(sa, rel=0.1)
+    # the spread about the block means (the estimate before) counts the motion: several times the sigma
+    n = 10
+    blocks = gyro[: len(t) // n * n].reshape(-1, n, 3)
+    assert np.sqrt(np.mean((blocks - blocks.mean(1, keepdims=True)) ** 2)) > 2 * sg

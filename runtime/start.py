@@ -109,8 +109,9 @@ def repose_older(system) -> None:
 
 
 def adapt_imu_noise(system, t0: int, t1: int) -> tuple[float, float] | None:
-    """Raise the IMU white-noise densities to the level measured over ``[t0, t1)`` (the spread of the samples
-    about their 50 ms means: white noise plus vibration, which a MAV IMU's sensor.yaml densities leave out).
+    """Raise the IMU white-noise densities to the level measured over ``[t0, t1)`` (from the samples' second
+    differences, :func:`runtime.init.imu_rest_stats`: white noise plus vibration, which a MAV IMU's sensor.yaml
+    densities leave out, and not the motion).
     Returns the (gyro, accel) multipliers, None when left as configured."""
     c = system.cfg.imu
     its, g, a = system.imu.window(t0, t1)

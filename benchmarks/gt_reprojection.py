@@ -5,8 +5,9 @@
 
 OpenCV's pyramidal KLT (not the runtime's front end, so that the check does not share its choices) follows corners
 through the images, keeping forward-backward consistent tracks of at least 6 frames. Each track is triangulated
-linearly from the camera poses ``T_w_b(t) @ T_b_c`` and reprojected into the frames that saw it; the error [px] is
-summarised over the tracks whose every view lies within 5 px (the others are counted as outliers). A ground truth
+by the runtime's linear triangulation (:func:`runtime.frontend.triangulation.triangulate`) from the camera poses
+``T_w_b(t) @ T_b_c`` and reprojected into the frames that saw it; the error [px] is summarised over the tracks
+whose every view lies within 5 px (the others are counted as outliers). A ground truth
 that matches the images up to a similarity gives errors at the level of the tracking noise.
 
 Variants: the ground truth as it is, with its positions shifted in time by ``--shifts-ms`` (the rotation left on
@@ -65,33 +66,29 @@ def klt_tracks(seq, max_len: int = 25, target: int = 300, fb_px: float = 0.3) ->
 
 
 def reprojection(tracks_n: list[tuple[np.ndarray, np.ndarray]], T_w_c: np.ndarray, f_px: float) -> dict:
-    """Linear triangulation of each track from the camera poses and its reprojection error [px]."""
-    from runtime.geometry import inv_T
+    """Each track triangulated from the camera poses (the runtime's linear triangulation) and its reprojection
+    error [px] in every view."""
+    from runtime.frontend.triangulation import triangulate
 
-    T_c_w = np.array([inv_T(T) for T in T_w_c])
-    errs, outliers = [], 0
-    for frames, xn in tracks_n:
-        P = T_c_w[frames][:, :3, :]
-        A = np.concatenate([xn[:, :1] * P[:, 2] - P[:, 0], xn[:, 1:2] * P[:, 2] - P[:, 1]], 0)
-        X = np.linalg.svd(A)[2][-1]
-        if abs(X[3]) < 1e-12:
-            continue
-        X = X[:3] / X[3]
-        pc = np.einsum("nij,j->ni", P[:, :, :3], X) + P[:, :, 3]
-        if (pc[:, 2] < 0.2).any():
-            continue
-        e = np.linalg.norm((pc[:, :2] / pc[:, 2:3] - xn) * f_px, axis=1)
-        if e.max() > MAX_PX:
-            outliers += 1
-            continue
-        errs.append(e)
-    e = np.concatenate(errs) if errs else np.zeros(0)
+    M, V = len(tracks_n), max((len(fr) for fr, _ in tracks_n), default=1)
+    T = np.tile(np.eye(4), (M, V, 1, 1))
+    xn, mask = np.zeros((M, V, 2)), np.zeros((M, V), bool)
+    for m, (frames, x) in enumerate(tracks_n):
+        T[m, : len(frames)], xn[m, : len(frames)], mask[m, : len(frames)] = T_w_c[frames], x, True
+    X, _, diag = triangulate(T, xn, mask, focal=f_px)
+    p_c = np.einsum("mvji,mvj->mvi", T[..., :3, :3], X[:, None, :] - T[..., :3, 3])
+    z = np.where(mask, p_c[..., 2], 1.0)
+    err = np.linalg.norm(p_c[..., :2] / z[..., None] - xn, axis=-1) * f_px
+    front = (diag["min_depth"] >= 0.2) & np.isfinite(X).all(1)
+    outlier = front & (diag["max_err_px"] > MAX_PX)
+    kept = front & ~outlier
+    e = err[kept][mask[kept]]
     return {
         "median_px": float(np.median(e)) if e.size else float("nan"),
         "rms_px": float(np.sqrt(np.mean(e**2))) if e.size else float("nan"),
         "p90_px": float(np.percentile(e, 90)) if e.size else float("nan"),
-        "tracks": len(errs),
-        "outlier_tracks": outliers,
+        "tracks": int(kept.sum()),
+        "outlier_tracks": int(outlier.sum()),
     }
 
 

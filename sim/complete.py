@@ -296,6 +296,8 @@ def complete_imu(
             noise = EUROC_ADIS16448
     if still < 0 or ramp <= 0:
         raise ValueError(f"still must be >= 0 and ramp > 0, got still={still}, ramp={ramp}")
+    if ideal:
+        errors, use_gt_bias = None, False
     gt = read_groundtruth(gt_path)
     frame_ts, names, sel, fit, steps = fit_source(gt, cam_src, sigma_p, sigma_q, step_mps, step_blend_s)
     tg = (gt.ts[sel] - fit.t0_ns) * 1e-9
@@ -351,7 +353,6 @@ def complete_imu(
         err = replace(err, gyro_bias_max=0.0, accel_bias_max=0.0)
     dt = dt_ns * 1e-9
     if ideal:
-        use_gt_bias, errors = False, None
         g_meas, a_meas, bg, ba = gyro, accel, np.zeros_like(gyro), np.zeros_like(accel)
     else:
         g_meas, a_meas, bg, ba = add_imu_errors(gyro, accel, dt, rng, noise, err)

@@ -96,6 +96,7 @@ class _KfDense:
     fused: bool = False  # integrated into the fused map
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
+    n_sparse: int = -1  # map points in the network's sparse input (-1: the network takes none)
 
     @property
     def provider(self) -> LinearizedDepth:
@@ -110,6 +111,7 @@ class _Stats:
     n_code_kfs: list = field(default_factory=list)
     n_geo_rows: list = field(default_factory=list)
     n_consis_rows: list = field(default_factory=list)
+    n_sparse: list = field(default_factory=list)  # map points in each keyframe's network input
 
 
 class DenseMapper:
@@ -178,13 +180,15 @@ class DenseMapper:
             del self.kfs[k]
         und = self.camera.undistort_image(image)
         img_net = self.mapping.image_to_network(und)
-        sparse = None
+        sparse, n_sparse = None, -1
         if self.net.uses_sparse:
             uv, z = self._observed_points(backend, kf_id)
             sparse = sparse_depth_image(self.mapping.points_to_network(uv), z, (self.net.height, self.net.width))
+            n_sparse = int((sparse > 0).sum())
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
         job = self._submit(self._network_pass, img_net, sparse, frame_idx)
-        self.kfs[kf_id] = _KfDense(kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim))
+        self.kfs[kf_id] = _KfDense(kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse)
+        self.stats.n_sparse.append(n_sparse)
         self.timers["dense_keyframe"] += time.perf_counter() - t0
 
     def _submit(self, fn, *args) -> Future:
@@ -233,7 +237,8 @@ class DenseMapper:
         window = backend.window_ids()
         if self.cfg.background:
             window = window[:-1]  # the keyframe created just now
-        window = [k for k in window if k in self.kfs]
+        low = self.cfg.min_sparse_points
+        window = [k for k in window if k in self.kfs and (self.kfs[k].n_sparse < 0 or self.kfs[k].n_sparse >= low)]
         if not window:
             return []
         newest = window[-1]
@@ -476,6 +481,8 @@ class DenseMapper:
             "dense_mean_code_keyframes": float(np.mean(st.n_code_kfs)) if st.n_code_kfs else 0.0,
             "dense_mean_geo_rows": float(np.mean(st.n_geo_rows)) if st.n_geo_rows else 0.0,
             "dense_mean_consis_rows": float(np.mean(st.n_consis_rows)) if st.n_consis_rows else 0.0,
+            "dense_keyframe_sparse_points": _quartiles(st.n_sparse),
+            "dense_keyframes_below_min_sparse": int(sum(0 <= n < self.cfg.min_sparse_points for n in st.n_sparse)),
             "decoder_calls": int(self.net.decoder_calls),
             "dense_config": dataclasses.asdict(self.cfg),
         }
@@ -490,3 +497,10 @@ class DenseMapper:
             res["depth_metrics_keyframes"] = len(per_kf)
             res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"
         return res
+
+
+def _quartiles(values: list) -> list[float] | None:
+    """``[min, 25 %, median, 75 %, max]`` of ``values`` (None when empty)."""
+    if not values:
+        return None
+    return [float(x) for x in np.percentile(np.asarray(values, np.float64), [0, 25, 50, 75, 100])]

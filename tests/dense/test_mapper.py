@@ -240,17 +240,28 @@ def test_code_keyframes_are_the_newest_and_its_covisible_ones():
             # only keyframe 6 shares landmarks with the newest; 8 shares with 9, 5 and 3
             return {9: [6], 8: [5, 9, 3]}.get(kf, [])
 
-    def selection(background):
+    def selection(background, min_sparse=0, n_sparse=None):
         m = DenseMapper.__new__(DenseMapper)
-        m.cfg = DenseConfig(n_code_keyframes=4, background=background)
+        m.cfg = DenseConfig(n_code_keyframes=4, background=background, min_sparse_points=min_sparse)
         m.timers = defaultdict(float)
-        m.kfs = {k: SimpleNamespace(job=_done(k), relin=None) for k in Backend().window_ids()}
+        n_sparse = n_sparse or {}
+        m.kfs = {
+            k: SimpleNamespace(job=_done(k), relin=None, n_sparse=n_sparse.get(k, -1)) for k in Backend().window_ids()
+        }
         return m._select(Backend())
 
     assert selection(False) == [9, 6]
     # in the background the newest keyframe's network pass is still running: the one before it anchors, and the
     # newest never joins (whatever the thread's timing)
     assert selection(True) == [8, 5, 3]
+    # keyframes whose network input held fewer map points than min_sparse_points take no code: 8 (none) and 5
+    # (19) drop out, 6 becomes the newest; -1 (a network without a sparse input) is never dropped
+    counts = {3: 20, 5: 19, 6: 120, 8: 0, 9: -1}
+    assert selection(True, 20, counts) == [6]
+    assert selection(False, 20, counts) == [9, 6]
+    assert selection(True, 0, counts) == [8, 5, 3]
+    with pytest.raises(ValueError, match="min_sparse_points"):
+        DenseConfig(min_sparse_points=-1)
 
 
 def _done(value) -> Future:

@@ -22,7 +22,8 @@
   keyframe whose code moved more than ``DenseConfig.relin_tol`` has its decoder relinearised at the new code on
   the network thread, for the next optimisation (:class:`runtime.dense.linearized.LinearizedDepth`).
 * **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the run's fused map,
-  :class:`runtime.dense.fusion.VoxelMap`: every keyframe's decoded depth, uncertainty-filtered and weighted by
+  :class:`runtime.dense.fusion.VoxelMap`: every keyframe's decoded depth (those with
+  ``min_sparse_points`` in the network input), uncertainty-filtered and weighted by
   ``1 / B^2``, integrated once when it leaves the window with its final code and pose, and at the end for the
   keyframes still in the window; points with normals and colours), ``dense_mesh.ply`` (with
   ``DenseMapConfig.mesh``: the same keyframes integrated on the network thread, right after the point map, into
@@ -378,6 +379,8 @@ class DenseMapper:
         if d.fused:
             return
         d.fused = True
+        if 0 <= d.n_sparse < self.cfg.min_sparse_points:  # its depth has no metric scale
+            return
         T_w_c = np.asarray(backend.keyframe(d.kf_id).T_w_b, np.float64) @ self.T_b_c
 
         def integrate(provider: LinearizedDepth, code: np.ndarray) -> None:

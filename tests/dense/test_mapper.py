@@ -398,3 +398,24 @@ def test_the_dense_map_goes_into_the_rerun_recording(seq8, tmp_path, monkeypatch
     assert np.array_equal(got_rgb, rgb)
     assert {"world/sparse_map", "world/dense_map"} <= set(seen["paths"])
     assert (tmp_path / "slam.rrd").stat().st_size > 10_000
+
+
+def test_keyframes_below_min_sparse_points_stay_out_of_the_dense_map():
+    """A keyframe whose network input held fewer than ``min_sparse_points`` map points is not fused (its depth
+    has the constant fill's scale); one with enough points, and any keyframe of a network without a sparse
+    input (-1), is."""
+
+    class Backend:
+        def keyframe(self, k):
+            return SimpleNamespace(T_w_b=np.eye(4))
+
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg, m.T_b_c = DenseConfig(min_sparse_points=20), np.eye(4)
+    fused = []
+    m._submit = lambda fn, provider, code: fused.append(provider)
+    for k, n in ((1, 0), (2, 19), (3, 20), (4, -1)):
+        d = SimpleNamespace(kf_id=k, fused=False, n_sparse=n, job=_done(k), code=np.zeros(8))
+        d.provider = k
+        m._fuse(Backend(), d)
+        assert d.fused  # never tried again
+    assert fused == [3, 4]

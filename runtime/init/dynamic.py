@@ -3,7 +3,8 @@
 For a sequence with no period at rest (a MAV already flying, a hand-held camera picked up while moving):
 
 1. **Visual structure from motion** over the frames of the last ``window_s`` (subsampled to ``n_frames``; when
-   those show less than ``min_parallax_px``, the shortest longer window up to ``max_window_s`` that does):
+   those show less than ``min_parallax_px``, the shortest longer window up to ``max_window_s`` that does; when
+   the alignment below fails, :class:`runtime.init.runner.InitRunner` tries the longest window once more):
    the essential matrix between the first and the last frame (RANSAC), their common tracks triangulated, every
    other frame's pose by PnP on those points, then all tracks triangulated and refined by a small bundle
    adjustment (GTSAM, Huber). Poses ``T_c0_ck`` are known up to one scale.
@@ -55,7 +56,7 @@ class DynamicInitConfig:
 
     enabled: bool = True  # initialise in motion when the sequence is not at rest
     window_s: float = 1.0  # s of frames used (the window grows from the first frame up to this)
-    max_window_s: float = 2.0  # s, longest window tried when ``window_s`` holds too little parallax (slow motion)
+    max_window_s: float = 3.0  # s, longest window tried when ``window_s`` shows too little parallax or fails to align
     min_window_s: float = 0.5  # s, shortest window tried
     n_frames: int = 10  # frames of the window used (evenly spaced in time), at most backend.window_size
     min_tracks: int = 30  # tracks common to the first and last frame

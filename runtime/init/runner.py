@@ -9,7 +9,10 @@ Each tracked frame before initialisation is kept (its features, and its image fo
    span ``min_window_s``: structure from motion and the visual-inertial alignment over the frames since
    ``window_s`` ago (from the first frame while the sequence is younger), ``n_frames`` of them; when those frames
    show less parallax than ``min_parallax_px`` (slow motion), the shortest longer window up to ``max_window_s``
-   that shows it.
+   that shows it. When the start fails on that window (structure from motion or the alignment), it is tried once
+   more over the longest window of kept frames up to ``max_window_s``: in slow motion an accelerometer bias of
+   0.2 m/s^2 outweighs the acceleration over 1 s, and the alignment's scale comes out negative (the realistic
+   ``tabletop`` preset, reports/).
 3. **Turning in place** (:func:`runtime.init.dynamic.initialize_hovering`), when the window spans ``window_s``,
    structure from motion failed and the images show rotation only.
 
@@ -142,7 +145,15 @@ class InitRunner:
             if n >= d.min_tracks and par_px < d.min_parallax_px:
                 raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
             self.tries += 1
-            r = initialize_in_motion(feats, self.imu, self.T_b_c, self.focal, d, self.gravity)
+            try:
+                r = initialize_in_motion(feats, self.imu, self.T_b_c, self.focal, d, self.gravity)
+            except InitFailed:
+                longest = self._window(ts - s_to_ns(d.max_window_s)) if since is None else None
+                if longest is None or longest[0][0].ts >= win[0].ts:
+                    raise
+                win, sel = longest[:2]
+                feats = [s.feats for s in sel]
+                r = initialize_in_motion(feats, self.imu, self.T_b_c, self.focal, d, self.gravity)
             method = "dynamic"
         except InitFailed as e:
             self.last_reason = str(e)

@@ -200,3 +200,41 @@ def test_frames_before_an_in_motion_start_follow_the_first_keyframes_state():
     window.clear()  # the keyframe left the window: nothing moves any more
     repose_older(system)
     assert system.older_pending is None and np.array_equal(recs[20].T_rel, before)
+
+
+def test_a_failed_alignment_is_tried_again_on_the_longest_window(monkeypatch):
+    """When the alignment fails on the 1 s window (slow motion: the accelerometer bias outweighs the acceleration),
+    the start is tried once more over the longest window of kept frames up to ``max_window_s``, and takes it; a
+    window that aligns is never replaced."""
+    import runtime.init.runner as runner_mod
+    from runtime.init.runner import InitRunner
+    from runtime.init.static import InitConfig
+
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0, rate=0.4)
+    frames, imu = _frames(m, 3.0)
+    real, spans = runner_mod.initialize_in_motion, []
+
+    def needs_two_seconds(feats, *a, **k):
+        span = (feats[-1].ts - feats[0].ts) * 1e-9
+        spans.append(round(span, 2))
+        if span < 2.0 - 1e-6:
+            raise InitFailed("alignment scale -0.2 is not positive")
+        return real(feats, *a, **k)
+
+    monkeypatch.setattr(runner_mod, "initialize_in_motion", needs_two_seconds)
+    run = InitRunner(InitConfig(), DynamicInitConfig(max_window_s=3.0), imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
+    st = _steps(run, frames, 3.0)
+    assert st is not None and st.method == "dynamic" and st.info["span_s"] >= 2.0
+    assert spans[-2:] == [1.0, st.info["span_s"]]  # the 1 s window failed, then the longest one was tried
+    t_start = (st.keyframes[-1][0].ts - T0) * 1e-9
+    assert t_start < 2.5  # not waiting for a 1 s window that aligns (there is none)
+
+    spans.clear()
+    monkeypatch.setattr(runner_mod, "initialize_in_motion", lambda f, *a, **k: spans.append(1) or real(f, *a, **k))
+    run = InitRunner(InitConfig(), DynamicInitConfig(max_window_s=3.0), imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
+    st = _steps(run, frames, 3.0)
+    assert st is not None and st.info["span_s"] <= 1.0 + 1e-6 and len(spans) == run.tries  # one try each
+
+    old = InitRunner(InitConfig(), DynamicInitConfig(max_window_s=1.0), imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
+    monkeypatch.setattr(runner_mod, "initialize_in_motion", needs_two_seconds)
+    assert _steps(old, frames, 3.0) is None  # without a longer window there is no start

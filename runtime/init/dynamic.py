@@ -4,7 +4,7 @@ For a sequence with no period at rest (a MAV already flying, a hand-held camera 
 
 1. **Visual structure from motion** over the frames of the last ``window_s`` (subsampled to ``n_frames``; when
    those show less than ``min_parallax_px``, the shortest longer window up to ``max_window_s`` that does; when
-   the alignment below fails, :class:`runtime.init.runner.InitRunner` tries the longest window once more):
+   this or the alignment below fails, :class:`runtime.init.runner.InitRunner` tries the longest window once more):
    the essential matrix between the first and the last frame (RANSAC), their common tracks triangulated, every
    other frame's pose by PnP on those points, then all tracks triangulated and refined by a small bundle
    adjustment (GTSAM, Huber). Poses ``T_c0_ck`` are known up to one scale.

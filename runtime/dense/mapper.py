@@ -192,6 +192,11 @@ class DenseMapper:
         self.stats.n_sparse.append(n_sparse)
         self.timers["dense_keyframe"] += time.perf_counter() - t0
 
+    def _unscaled(self, n_sparse: int) -> bool:
+        """A keyframe whose network input held ``n_sparse`` map points (-1: the network takes none) has a depth
+        of no metric scale: fewer than ``min_sparse_points``. It takes no code and is not fused."""
+        return 0 <= n_sparse < self.cfg.min_sparse_points
+
     def _submit(self, fn, *args) -> Future:
         """Run ``fn(*args)`` on the network thread (``DenseConfig.background``; one worker, so that the passes
         on one keyframe never overlap) or here; errors are raised where the result is read."""
@@ -238,8 +243,7 @@ class DenseMapper:
         window = backend.window_ids()
         if self.cfg.background:
             window = window[:-1]  # the keyframe created just now
-        low = self.cfg.min_sparse_points
-        window = [k for k in window if k in self.kfs and (self.kfs[k].n_sparse < 0 or self.kfs[k].n_sparse >= low)]
+        window = [k for k in window if k in self.kfs and not self._unscaled(self.kfs[k].n_sparse)]
         if not window:
             return []
         newest = window[-1]
@@ -379,7 +383,7 @@ class DenseMapper:
         if d.fused:
             return
         d.fused = True
-        if 0 <= d.n_sparse < self.cfg.min_sparse_points:  # its depth has no metric scale
+        if self._unscaled(d.n_sparse):
             return
         T_w_c = np.asarray(backend.keyframe(d.kf_id).T_w_b, np.float64) @ self.T_b_c
 
@@ -485,7 +489,7 @@ class DenseMapper:
             "dense_mean_geo_rows": float(np.mean(st.n_geo_rows)) if st.n_geo_rows else 0.0,
             "dense_mean_consis_rows": float(np.mean(st.n_consis_rows)) if st.n_consis_rows else 0.0,
             "dense_keyframe_sparse_points": _quartiles(st.n_sparse),
-            "dense_keyframes_below_min_sparse": int(sum(0 <= n < self.cfg.min_sparse_points for n in st.n_sparse)),
+            "dense_keyframes_below_min_sparse": int(sum(self._unscaled(n) for n in st.n_sparse)),
             "decoder_calls": int(self.net.decoder_calls),
             "dense_config": dataclasses.asdict(self.cfg),
         }

@@ -43,7 +43,7 @@ def preintegration_errors(root: Path, window_s: float = 1.0, raises: tuple[float
     imu = ImuStream.from_sequence(seq)
     n = int(round(window_s * seq.imu.rate_hz))
     stated = seq.imu.gyro_noise_density > 0
-    params = {r: preintegration_params(seq.imu, None, (r, r)) if stated else None for r in raises}
+    params = {r: preintegration_params(seq.imu, None, (r, r)) for r in raises} if stated else {}
     ep, ev, er, nees = [], [], [], {r: [] for r in raises}
     for i in range(0, len(ts) - n, n):
         j = i + n
@@ -58,17 +58,17 @@ def preintegration_errors(root: Path, window_s: float = 1.0, raises: tuple[float
         ep.append(np.linalg.norm(rel_p[:3, 3] - rel_g[:3, 3]))
         er.append(np.degrees(rotation_angle(rel_p[:3, :3].T @ rel_g[:3, :3])))
         ev.append(np.linalg.norm(pred.velocity() - gt.v_w[j]))
+        if not stated:
+            continue
+        vals = gtsam.Values()  # the true states at the window's ends
+        vals.insert(0, to_pose3(gt.T_w_b[i]))
+        vals.insert(1, gt.v_w[i])
+        vals.insert(2, to_pose3(gt.T_w_b[j]))
+        vals.insert(3, gt.v_w[j])
+        vals.insert(4, bias)
         for r, p in params.items():
-            if p is None:
-                continue
             pim_r = gtsam.PreintegratedImuMeasurements(p, bias)
             integrate(pim_r, *pieces)
-            vals = gtsam.Values()
-            vals.insert(0, to_pose3(gt.T_w_b[i]))
-            vals.insert(1, gt.v_w[i])
-            vals.insert(2, to_pose3(gt.T_w_b[j]))
-            vals.insert(3, gt.v_w[j])
-            vals.insert(4, bias)
             e = gtsam.ImuFactor(0, 1, 2, 3, 4, pim_r).whitenedError(vals)
             nees[r].append(float(e @ e))
     ip = seq.imu

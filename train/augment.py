@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from runtime.densify import network_fill
 from runtime.geometry import NetworkMapping
 from train.sparse import SparseConfig, sample_sparse_depth
 
@@ -165,11 +166,14 @@ class FrameTransform:
         train: random augmentation + noisy training sparse depth, or resize + centre crop + 125 clean samples.
         augment: augmentation ranges (training only); None = the paper's.
         sparse: sparse sampling parameters (``*s`` modalities); None = the defaults (125 at evaluation).
+        with_fill: also return ``fill`` (1, h, w) [m], the relative network's interpolated sparse input
+            (:func:`runtime.densify.network_fill`), so that it is computed in the data loader's workers rather
+            than in the training step (``*s`` modalities only).
 
     ``__call__(rgb (H, W, 3) uint8, depth (H, W) float32 [m], rng)`` returns a dict of float32 arrays:
     ``image`` (Cin, h, w): image channels in [0, 1] (grey or RGB), then the sparse depth [m] for ``*s``;
     ``depth`` (1, h, w) [m], 0 = invalid; ``params`` (7,) the drawn ``(s, alpha_deg, flip, brightness,
-    contrast, saturation, n_sparse)`` (identity values at evaluation).
+    contrast, saturation, n_sparse)`` (identity values at evaluation); ``fill`` (1, h, w) [m] when asked for.
     """
 
     def __init__(
@@ -180,6 +184,7 @@ class FrameTransform:
         train: bool,
         augment: AugmentConfig | None = None,
         sparse: SparseConfig | None = None,
+        with_fill: bool = False,
     ):
         if modality not in MODALITIES:
             raise ValueError(f"modality={modality!r} not in {sorted(MODALITIES)}")
@@ -191,6 +196,7 @@ class FrameTransform:
         self.train = bool(train)
         self.augment = augment if augment is not None else AugmentConfig()
         self.sparse = sparse if sparse is not None else SparseConfig()
+        self.with_fill = bool(with_fill) and self.use_sparse
         self._maps: dict[tuple[int, int], NetworkMapping] = {}
 
     def mapping(self, in_hw: tuple[int, int]) -> NetworkMapping:
@@ -231,8 +237,11 @@ class FrameTransform:
             chans.append(sp[None])
             n_sparse = len(uv)
         image = np.ascontiguousarray(np.concatenate(chans, axis=0), dtype=np.float32)
-        return {
+        out = {
             "image": image,
             "depth": np.ascontiguousarray(d[None], dtype=np.float32),
             "params": np.array([s, angle, float(flip), *bcs, n_sparse], np.float32),
         }
+        if self.with_fill:
+            out["fill"] = network_fill(image[-1])[None]
+        return out

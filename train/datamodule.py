@@ -124,6 +124,9 @@ class NyuDataModule(L.LightningDataModule):
         augment, sparse: :class:`~train.augment.AugmentConfig` / :class:`~train.sparse.SparseConfig` fields.
         sim: ``n_train``, ``n_val``, ``seed`` of the synthetic set.
         limit_train, limit_val: use only the first frames of a split (None = all).
+        fill_in_loader: add each sample's interpolated sparse input (``fill``, the relative network's second input) in
+            the data loader's workers; the training step computes it on the main process otherwise, which held
+            a GPU run at 5.4 steps/s (``benchmarks/results/depth_ablations/gpu_more_rooms.json``).
     """
 
     def __init__(
@@ -148,6 +151,7 @@ class NyuDataModule(L.LightningDataModule):
         sim: dict | None = None,
         limit_train: int | None = None,
         limit_val: int | None = None,
+        fill_in_loader: bool = False,
     ):
         super().__init__()
         if kind not in KINDS:
@@ -177,6 +181,7 @@ class NyuDataModule(L.LightningDataModule):
         self.sparse = SparseConfig(**sp)
         self.sim = {"n_train": 1000, "n_val": 100, "seed": 0, **dict(sim or {})}
         self.limit_train, self.limit_val = limit_train, limit_val
+        self.fill_in_loader = bool(fill_in_loader)
         self.data_train: NyuFrames | None = None
         self.data_val: NyuFrames | None = None
         self.data_test: NyuFrames | None = None
@@ -202,7 +207,9 @@ class NyuDataModule(L.LightningDataModule):
             )
 
     def transform(self, train: bool) -> FrameTransform:
-        return FrameTransform(self.height, self.width, self.modality, train, self.augment, self.sparse)
+        return FrameTransform(
+            self.height, self.width, self.modality, train, self.augment, self.sparse, self.fill_in_loader
+        )
 
     def make_dataset(self, split: str, train: bool, limit: int | None = None) -> NyuFrames:
         """The dataset of one split with the train or evaluation transform."""

@@ -143,9 +143,14 @@ class DepthModule(L.LightningModule):
         self.run_config: dict | None = None
 
     # ----------------------------------------------------------------- core
-    def forward(self, image: torch.Tensor, code: torch.Tensor | None = None) -> dict:
-        """Inference: ``image`` (B, Cin, H, W) -> the network's dict (code = ``code`` or 0)."""
-        return self.net(image, code=code) if code is not None else self.net(image)
+    def forward(self, image: torch.Tensor, code: torch.Tensor | None = None, fill: torch.Tensor | None = None) -> dict:
+        """Inference: ``image`` (B, Cin, H, W) -> the network's dict (code = ``code`` or 0).
+
+        ``fill``: a relative network's interpolated sparse input, when the data loader made it (else the network
+        computes it).
+        """
+        kw = {"fill": fill} if fill is not None and getattr(self.net, "relative", False) else {}
+        return self.net(image, code=code, **kw) if code is not None else self.net(image, **kw)
 
     def kl_weight_at(self, step: int) -> float:
         w, n = float(self.hparams.kl_weight), int(self.hparams.kl_warmup_steps)
@@ -162,10 +167,11 @@ class DepthModule(L.LightningModule):
     def _shared_step(self, batch: dict, stage: str) -> tuple[torch.Tensor, dict]:
         """One batch of ``stage`` (train / val / test): returns (loss, network output)."""
         image, gt = batch["image"], batch["depth"]
+        fill = batch.get("fill") if getattr(self.net, "relative", False) else None
         b = image.shape[0]
         if stage == "train":
             with self._step_rng():
-                out = self.net(image, gt_depth=gt)
+                out = self.net(image, gt_depth=gt, **({"fill": fill} if fill is not None else {}))
             w = self.kl_weight_at(self.global_step)
             loss, parts = total_loss(out, gt, kl_weight=w)
             self.log_dict(
@@ -176,7 +182,7 @@ class DepthModule(L.LightningModule):
             self.log("train/kl_weight", w, batch_size=b)
             return loss, out
         t0 = time.perf_counter()
-        out = self.forward(image)
+        out = self.forward(image, fill=fill)
         self._time[stage][0] += time.perf_counter() - t0
         self._time[stage][1] += b
         loss, _ = total_loss({"depth": out["depth"], "uncertainty": out.get("uncertainty")}, gt)

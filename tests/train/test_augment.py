@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from runtime.densify import network_fill
 from runtime.geometry import NetworkMapping
 from train.augment import AugmentConfig, FrameTransform, affine_matrix, color_jitter, to_gray
 
@@ -133,3 +134,17 @@ def test_bad_inputs():
         tf(np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), np.random.default_rng(0))
     with pytest.raises(ValueError, match="depth has shape"):
         tf(np.zeros((H, W, 3), np.uint8), np.zeros((H, W + 1), np.float32), np.random.default_rng(0))
+
+
+def test_fill_is_the_interpolation_of_the_sparse_channel():
+    rng = np.random.default_rng(5)
+    rgb, _ = _frame(5)
+    depth = rng.uniform(1.0, 6.0, (H, W)).astype(np.float32)  # varied depth: a fill that is not constant
+    for train in (True, False):
+        out = FrameTransform(64, 64, "grays", train=train, with_fill=True)(rgb, depth, np.random.default_rng(3))
+        assert out["fill"].shape == (1, 64, 64) and out["fill"].dtype == np.float32
+        assert (out["image"][-1] > 0).sum() >= 20
+        np.testing.assert_array_equal(out["fill"][0], network_fill(out["image"][-1]))
+        assert out["fill"].std() > 0.1
+    assert "fill" not in FrameTransform(64, 64, "grays", train=True)(rgb, depth, np.random.default_rng(3))
+    assert "fill" not in FrameTransform(64, 64, "gray", train=True, with_fill=True)(rgb, depth, rng)

@@ -47,6 +47,7 @@ def test_model_x_modality_instantiates(model, modality, tmp_path, fake_nyu):
     assert (net.height, net.width) == (64, 64)
     dm = hydra.utils.instantiate(cfg.data)
     assert dm.modality == modality
+    assert dm.transform(True).with_fill == bool(getattr(net, "relative", False))  # a relative net's fill: in the loader
     out = module(torch.rand(1, MODALITIES[modality], 64, 64))
     assert out["depth"].shape == (1, 1, 64, 64) and bool((out["depth"] > 0).all())
     assert (out["uncertainty"] is None) == (model == "fastdepth")

@@ -70,3 +70,20 @@ def test_image_panel_layout():
     p = image_panel(img, gt, gt + 0.1, gt * 0 + 0.2, sparse=True)
     assert p.shape == (32, 5 * 16, 3) and p.dtype == np.uint8
     assert image_panel(img[:, :1], gt, gt, None, sparse=False).shape == (32, 4 * 16, 3)
+
+
+def test_a_fill_made_by_the_loader_is_the_one_the_network_uses():
+    from models.blocks import linear_fill
+
+    net = build_model("dit", "grays", width_mult=0.25, height=64, width=64, relative=True)
+    m = DepthModule(net, optimizer=lambda params: torch.optim.SGD(params, lr=1.0)).eval()
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(2, 2, 64, 64, generator=g)
+    keep = torch.rand(2, 1, 64, 64, generator=g) < 0.02
+    image[:, 1:] = torch.where(keep, 1.0 + 4.0 * image[:, 1:], torch.zeros_like(image[:, 1:]))
+    with torch.no_grad():
+        own = m(image)["depth"]
+        given = m(image, fill=linear_fill(image[:, 1:]))["depth"]
+        other = m(image, fill=2.0 * linear_fill(image[:, 1:]))["depth"]
+    assert torch.equal(own, given)
+    assert (other / own).mean() > 1.2  # the given fill is the one used (depth = fill * a bounded correction)

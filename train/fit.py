@@ -10,6 +10,7 @@ validation table. Examples::
         data.batch_size=4 data.root=/path hydra.run.dir=runs/x
     python train/fit.py ckpt_path=last hydra.run.dir=runs/x        # resume runs/x exactly
     python train/fit.py experiment=codevio32_rgb trainer=gpu
+    python train/fit.py trainer=gpu data.num_workers=12    # a GPU waits on the CPU's data work otherwise
     python train/fit.py trainer=ddp trainer.devices=2              # DDP (gloo on CPU, NCCL on GPUs)
 
 Outputs in the run directory: ``checkpoints/last.ckpt`` (always), ``checkpoints/best-step*.ckpt`` (lowest

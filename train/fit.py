@@ -60,6 +60,7 @@ __all__ = [
     "train",
     "resolve_ckpt_path",
     "check_resume_compatible",
+    "check_accelerator",
     "set_aside_earlier_run",
     "instantiate_callbacks",
     "instantiate_loggers",
@@ -163,6 +164,16 @@ def _output_dir(cfg: DictConfig) -> Path:
         return Path(cfg.trainer.get("default_root_dir") or ".")
 
 
+def check_accelerator(trainer_cfg: DictConfig | dict | None) -> None:
+    """``trainer=gpu`` (accelerator gpu or cuda) where torch sees no CUDA device raises ValueError (one line, before
+    any data is rendered or any model is built) instead of Lightning's error from inside the Trainer."""
+    acc = str((trainer_cfg or {}).get("accelerator", "cpu")).lower()
+    if acc in ("gpu", "cuda") and not torch.cuda.is_available():
+        raise ValueError(
+            f"trainer.accelerator={acc}, but torch {torch.__version__} sees no CUDA GPU: use trainer=cpu (the default)"
+        )
+
+
 def train(cfg: DictConfig) -> dict:
     """Fit, then validate the best (else the final) weights; returns the validation metrics.
 
@@ -178,6 +189,7 @@ def train(cfg: DictConfig) -> dict:
         ckpt = resolve_ckpt_path(cfg.get("ckpt_path"), out_dir, runs_root)
         if ckpt is not None:
             check_resume_compatible(ckpt, net_cfg)
+    check_accelerator(cfg.get("trainer"))
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
     if cfg.get("seed") is not None:

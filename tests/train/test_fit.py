@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from tests.train.conftest import REPO, compose_fit, tiny_overrides
-from train.fit import resolve_ckpt_path, train
+from train.fit import check_accelerator, main, resolve_ckpt_path, train
 
 
 def _train_losses(run_dir: Path) -> list[float]:
@@ -66,6 +66,18 @@ def test_resume_is_exact(fake_nyu, tmp_path):
     train(compose_fit(tiny_overrides(fake_nyu, other) + base + ["trainer.max_steps=10", "seed=1"]))
     c = _weights(other / "checkpoints" / "last.ckpt")
     assert not all(torch.equal(a["state_dict"][k], c["state_dict"][k]) for k in a["state_dict"])
+
+
+def test_gpu_trainer_without_a_gpu_is_one_line_and_status_2(fake_nyu, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    check_accelerator({"accelerator": "cpu"})  # no error
+    with pytest.raises(ValueError, match="sees no CUDA GPU: use trainer=cpu"):
+        check_accelerator({"accelerator": "gpu"})
+    with pytest.raises(SystemExit) as e:
+        main(tiny_overrides(fake_nyu, tmp_path) + ["trainer=gpu"])
+    assert e.value.code == 2
+    assert "fit: trainer.accelerator=gpu, but torch" in capsys.readouterr().err
+    assert not (tmp_path / "checkpoints").exists()  # stopped before any training
 
 
 def test_resolve_ckpt_path(tmp_path):

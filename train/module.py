@@ -149,8 +149,13 @@ class DepthModule(L.LightningModule):
         ``fill``: a relative network's interpolated sparse input, when the data loader made it (else the network
         computes it).
         """
-        kw = {"fill": fill} if fill is not None and getattr(self.net, "relative", False) else {}
+        kw = self._fill_kw(fill)
         return self.net(image, code=code, **kw) if code is not None else self.net(image, **kw)
+
+    def _fill_kw(self, fill: torch.Tensor | None) -> dict:
+        """``{"fill": fill}`` for a relative network when the data loader made the fill, else ``{}`` (the network
+        then computes it, and the other networks take none)."""
+        return {"fill": fill} if fill is not None and getattr(self.net, "relative", False) else {}
 
     def kl_weight_at(self, step: int) -> float:
         w, n = float(self.hparams.kl_weight), int(self.hparams.kl_warmup_steps)
@@ -167,11 +172,11 @@ class DepthModule(L.LightningModule):
     def _shared_step(self, batch: dict, stage: str) -> tuple[torch.Tensor, dict]:
         """One batch of ``stage`` (train / val / test): returns (loss, network output)."""
         image, gt = batch["image"], batch["depth"]
-        fill = batch.get("fill") if getattr(self.net, "relative", False) else None
+        fill = batch.get("fill")
         b = image.shape[0]
         if stage == "train":
             with self._step_rng():
-                out = self.net(image, gt_depth=gt, **({"fill": fill} if fill is not None else {}))
+                out = self.net(image, gt_depth=gt, **self._fill_kw(fill))
             w = self.kl_weight_at(self.global_step)
             loss, parts = total_loss(out, gt, kl_weight=w)
             self.log_dict(

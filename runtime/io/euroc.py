@@ -479,9 +479,14 @@ def read_euroc(root: str | Path) -> EurocSequence:
     """
     root, mav0 = _find_mav0(Path(root))
     cam_dir, imu_dir = mav0 / "cam0", mav0 / "imu0"
-    for d in (cam_dir, imu_dir):
-        if not d.is_dir():
-            raise EurocFormatError(f"{d}: missing folder")
+    if not cam_dir.is_dir():
+        raise EurocFormatError(f"{cam_dir}: missing folder")
+    if not imu_dir.is_dir():
+        if (mav0 / "state_groundtruth_estimate0" / "data.csv").is_file():
+            hint = f"; it has a ground truth: `dit-sim imu source={root} out=DIR` writes a copy with an IMU fit to it"
+        else:
+            hint = "; it has no ground truth to synthesise one from"
+        raise EurocFormatError(f"{imu_dir}: missing folder (the system is visual-inertial{hint})")
 
     camera, T_b_c, cam_rate = read_camera_yaml(cam_dir / "sensor.yaml")
     ts_all, names, _ = _read_file_list(cam_dir / "data.csv")

@@ -268,6 +268,16 @@ def test_missing_folder(euroc, rel):
         read_euroc(euroc.root)
 
 
+def test_missing_imu_names_dit_sim_imu_when_there_is_a_ground_truth(euroc):
+    shutil.rmtree(euroc.path("imu0"))
+    with _raises(euroc.path("imu0"), "dit-sim imu source="):
+        read_euroc(euroc.root)
+    euroc.path("state_groundtruth_estimate0/data.csv").unlink()
+    with pytest.raises(EurocFormatError, match="no ground truth") as e:
+        read_euroc(euroc.root)
+    assert "dit-sim imu" not in str(e.value)
+
+
 def test_missing_root_and_mav0(tmp_path):
     with _raises(tmp_path / "nope", "missing folder"):
         read_euroc(tmp_path / "nope")

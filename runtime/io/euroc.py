@@ -478,11 +478,11 @@ def read_euroc(root: str | Path) -> EurocSequence:
         >>> img = seq.image(0); T_w_b = seq.gt_pose_at(seq.frame_ts[100])  # doctest: +SKIP
     """
     root, mav0 = _find_mav0(Path(root))
-    cam_dir, imu_dir = mav0 / "cam0", mav0 / "imu0"
+    cam_dir, imu_dir, gt_dir = mav0 / "cam0", mav0 / "imu0", mav0 / "state_groundtruth_estimate0"
     if not cam_dir.is_dir():
         raise EurocFormatError(f"{cam_dir}: missing folder")
     if not imu_dir.is_dir():
-        if (mav0 / "state_groundtruth_estimate0" / "data.csv").is_file():
+        if (gt_dir / "data.csv").is_file():
             hint = f"; it has a ground truth: `dit-sim imu source={root} out=DIR` writes a copy with an IMU fit to it"
         else:
             hint = "; it has no ground truth to synthesise one from"
@@ -504,7 +504,6 @@ def read_euroc(root: str | Path) -> EurocSequence:
     imu_ts, iv, _ = read_euroc_csv(imu_dir / "data.csv", IMU_COLUMNS)
 
     gt = None
-    gt_dir = mav0 / "state_groundtruth_estimate0"
     if gt_dir.is_dir():
         gt = read_groundtruth(gt_dir / "data.csv")
     else:

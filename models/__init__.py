@@ -34,8 +34,9 @@ def build_model(
             only their own (8 / 32); ``fastdepth`` has no code and accepts only None.
         width_mult: channel multiplier of encoders and decoders.
         height, width: network input size [px], multiples of 32.
-        relative: ``dit`` only: predict relative to the densified sparse input (:class:`~models.ditnet.DiTNet`);
-            it has no effect on the modalities without sparse depth.
+        relative: predict relative to the densified sparse input (:class:`~models.ditnet.DiTNet`; the baselines
+            take the same formulation, :mod:`models.baselines`); it has no effect on the modalities without
+            sparse depth.
         image_contrast: ``dit`` only: each input image's contrast is matched to this standard deviation inside
             the network (:func:`~models.blocks.match_contrast`); None = the image as it comes.
 
@@ -49,15 +50,13 @@ def build_model(
         raise ValueError(f"modality={modality!r} not in {sorted(MODALITY_CHANNELS)}")
     cin = MODALITY_CHANNELS[modality]
     default = MODEL_NAMES[name]
-    if relative and name != "dit":
-        raise ValueError(f"relative=True needs model dit, got {name}")
     if image_contrast is not None and name != "dit":
         raise ValueError(f"image_contrast needs model dit, got {name}")
     relative = bool(relative) and modality.endswith("s")  # without sparse input there is nothing to be relative to
     if name == "fastdepth":
         if code_dim is not None:
             raise ValueError(f"fastdepth has no depth code, got code_dim={code_dim!r}")
-        return fastdepth(cin, width_mult, height, width)
+        return fastdepth(cin, width_mult, height, width, relative=relative)
     if name == "dit":
         code = default if code_dim is None else code_dim
         return DiTNet(
@@ -65,7 +64,7 @@ def build_model(
         )
     if code_dim is not None and code_dim != default:
         raise ValueError(f"{name} has code_dim {default}, got code_dim={code_dim!r} (use dit or codevio())")
-    return codevio(cin, default, width_mult, height, width)
+    return codevio(cin, default, width_mult, height, width, relative=relative)
 
 
 __all__ = ["MODALITY_CHANNELS", "MODEL_NAMES", "DepthDecoder", "DiTNet", "FastDepth", "build_model"]

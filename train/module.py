@@ -87,10 +87,10 @@ def net_spec(net: nn.Module) -> dict:
         "height": getattr(net, "height", None),
         "width": getattr(net, "width", None),
     }
+    if getattr(net, "relative", False):
+        spec["relative"] = True
     if name == "dit":
         spec["code_dim"] = getattr(net, "code_dim", None)
-        if getattr(net, "relative", False):
-            spec["relative"] = True
         if getattr(net, "image_contrast", None) is not None:
             spec["image_contrast"] = net.image_contrast
     return spec

@@ -117,8 +117,31 @@ def test_relative_training_step_and_describe():
     assert d["relative"] is True and "fill" in d["depth"]["parametrisation"]
     assert d["feature_shapes"][-1][0] == net.prior_net.channels[-1] + 1
     assert not build_model("dit", "gray", width_mult=0.25, height=H, width=W, relative=True).relative
-    with pytest.raises(ValueError, match="relative=True"):
-        build_model("codevio8", "grays", width_mult=0.25, height=H, width=W, relative=True)
+
+
+@pytest.mark.parametrize("name", ["fastdepth", "codevio8", "codevio32"])
+def test_relative_baselines_start_at_the_fill_and_carry_the_scale(name):
+    """The baselines under DiT's relative formulation (the GPU Table 1): at initialisation (head ~0) the depth is
+    the interpolation of the samples; scaling every input depth scales the output; the fill reaches the output
+    (a different fill, same image and samples, gives a different depth); and the absolute variant is unchanged."""
+    torch.manual_seed(0)
+    net = build_model(name, "grays", width_mult=0.25, height=H, width=W, relative=True).eval()
+    assert net.relative
+    x = torch.cat([torch.rand(2, 1, H, W), _sparse()], 1)
+    fill = linear_fill(x[:, 1:])
+    with torch.no_grad():
+        d = net(x)["depth"]
+        d2 = net(x * torch.tensor([1.0, 3.0])[None, :, None, None])["depth"]
+        d_fill = net(x, fill=1.5 * fill)["depth"]
+    assert torch.allclose(d2, 3.0 * d, rtol=1e-4)
+    assert float((d / fill - 1).abs().max()) < 0.2  # near the fill at initialisation
+    assert float((d_fill / d).mean()) > 1.2  # the fill is the base of the prediction
+    if name == "fastdepth":
+        assert net.describe()["relative"] is True
+        with pytest.raises(ValueError, match="relative FastDepth"):
+            build_model(name, "grays", width_mult=0.25, height=H, width=W)(x, fill=fill)
+    absolute = build_model(name, "grays", width_mult=0.25, height=H, width=W)
+    assert not absolute.relative
 
 
 def test_onnx_agrees_on_fill_scale_and_depth(tmp_path):

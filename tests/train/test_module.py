@@ -59,6 +59,9 @@ def test_net_spec_and_checkpoint_fields():
     assert (
         net_spec(build_model("fastdepth", "rgb", width_mult=0.25, height=64, width=64))["name"] == "fastdepth"
     )
+    for name in ("fastdepth", "codevio8"):  # a relative baseline is rebuilt relative
+        spec = net_spec(build_model(name, "grays", width_mult=0.25, height=64, width=64, relative=True))
+        assert spec["relative"] is True and build_model(**spec).relative
 
 
 def test_image_panel_layout():

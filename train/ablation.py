@@ -3,6 +3,7 @@
     python -m train.ablation                                   # default budget (conf/trainer, conf/data)
     python -m train.ablation --out outputs/ablation trainer.max_steps=3000 data.height=224 data.width=224
     python -m train.ablation --variants dit codevio8 --modalities gray grays trainer=gpu
+    python -m train.ablation --seeds 0 1 --jobs 8 --device cuda trainer=gpu data.num_workers=1 model.net.relative=true
 
 Every cell trains ``python train/fit.py experiment=<variant>_<modality>`` in its own process with the same
 Hydra overrides (the budget: ``trainer.max_steps``, ``data.*``, ``trainer=...``), into
@@ -10,6 +11,12 @@ Hydra overrides (the budget: ``trainer.max_steps``, ``data.*``, ``trainer=...``)
 evaluated with :mod:`train.evaluate` on the validation split (125 noise-free FAST samples for ``*s``). A cell
 whose ``eval_depth.json`` exists is not run again (``--force`` re-runs), so an interrupted ablation continues
 where it stopped. Writes ``<out>/ablation.md`` (the table) and ``<out>/ablation.json``.
+
+``--jobs N`` trains up to N cells at once (each its own process; on a GPU machine give each a data loader worker).
+``--seeds S ...`` runs the whole table once per training seed (``seed=S``) into ``<out>/seed<S>/`` and adds, per
+modality, the order of the variants by RMSE on each seed and whether the seeds agree on it (``<out>/ablation.md``,
+``<out>/ablation.json``). Every cell gets the same data, which the first cell renders when it is missing: with
+``--jobs`` above 1 render it first (``data.root``), or the cells race to write it.
 """
 
 from __future__ import annotations
@@ -23,11 +30,12 @@ import json  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from concurrent.futures import ThreadPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from train.metrics import format_table  # noqa: E402
 
-__all__ = ["main", "run_ablation", "VARIANTS", "MODALITIES"]
+__all__ = ["main", "run_ablation", "run_seeds", "variant_order", "VARIANTS", "MODALITIES"]
 
 REPO = Path(__file__).resolve().parents[1]
 #: Table 1 order and labels.
@@ -74,6 +82,18 @@ def _cell(out: Path, variant: str, modality: str, overrides: list[str], force: b
     return res
 
 
+def _check_names(variants: list[str] | None, modalities: list[str] | None) -> tuple[list[str], list[str]]:
+    """Validated variants and modalities, in Table 1 order."""
+    for v in variants or ():
+        if v not in VARIANTS:
+            raise ValueError(f"variant {v!r} not in {list(VARIANTS)}")
+    for m in modalities or ():
+        if m not in MODALITIES:
+            raise ValueError(f"modality {m!r} not in {list(MODALITIES)}")
+    variants, modalities = variants or list(VARIANTS), modalities or list(MODALITIES)
+    return [v for v in VARIANTS if v in variants], [m for m in MODALITIES if m in modalities]
+
+
 def run_ablation(
     out: str | Path,
     overrides: list[str] | None = None,
@@ -82,24 +102,21 @@ def run_ablation(
     force: bool = False,
     timing_frames: int = 30,
     device: str = "cpu",
+    jobs: int = 1,
 ) -> dict:
     """Train and evaluate every (variant, modality) cell; returns ``{"table": markdown, "cells": ...}``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    variants = list(variants or VARIANTS)
-    modalities = list(modalities or MODALITIES)
-    for v in variants:
-        if v not in VARIANTS:
-            raise ValueError(f"variant {v!r} not in {list(VARIANTS)}")
-    for m in modalities:
-        if m not in MODALITIES:
-            raise ValueError(f"modality {m!r} not in {list(MODALITIES)}")
+    variants, modalities = _check_names(variants, modalities)
     overrides = list(overrides or [])
     eval_args = {"split": "val", "device": device, "timing_frames": timing_frames, "median_baseline": True}
+    cells = [(v, m) for m in modalities for v in variants]  # Table 1 order
+    with ThreadPoolExecutor(max(1, int(jobs))) as pool:
+        done = list(pool.map(lambda vm: _cell(out, *vm, overrides, force, eval_args), cells))
     results, rows = {}, {}
-    for m in [m for m in MODALITIES if m in modalities]:  # Table 1 order
-        for v in [v for v in VARIANTS if v in variants]:
-            r = _cell(out, v, m, overrides, force, eval_args)
+    for m in modalities:
+        for v in variants:
+            r = done[cells.index((v, m))]
             results[f"{v}_{m}"] = r
             rows[f"{MODALITIES[m]} / {VARIANTS[v]}"] = {**r["metrics"], "ms": r["ms"]}
         itp = next(
@@ -123,6 +140,60 @@ def run_ablation(
     return summary
 
 
+def variant_order(cells: dict, modality: str) -> list[str]:
+    """The variants of ``modality`` in ``cells`` (``{"<variant>_<modality>": result}``), best RMSE first."""
+    have = [v for v in VARIANTS if f"{v}_{modality}" in cells]
+    return sorted(have, key=lambda v: cells[f"{v}_{modality}"]["metrics"]["rmse"])
+
+
+def run_seeds(
+    out: str | Path,
+    seeds: list[int],
+    overrides: list[str] | None = None,
+    variants: list[str] | None = None,
+    modalities: list[str] | None = None,
+    force: bool = False,
+    timing_frames: int = 30,
+    device: str = "cpu",
+    jobs: int = 1,
+) -> dict:
+    """:func:`run_ablation` once per training seed (``<out>/seed<S>/``, ``seed=S``), the cells of every seed in one
+    pool of ``jobs``; adds each modality's variant order per seed and whether the seeds agree on it."""
+    out = Path(out)
+    variants, modalities = _check_names(variants, modalities)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"seeds must be distinct and at least one, got {seeds!r}")
+    base = [o for o in overrides or [] if not o.startswith("seed=")]
+    per_jobs = max(1, int(jobs) // len(seeds))
+    with ThreadPoolExecutor(len(seeds)) as pool:
+        runs = list(
+            pool.map(
+                lambda s: run_ablation(
+                    out / f"seed{s}", base + [f"seed={s}"], variants, modalities, force, timing_frames, device, per_jobs
+                ),
+                seeds,
+            )
+        )
+    order = {
+        m: {str(s): variant_order(r["cells"], m) for s, r in zip(seeds, runs, strict=True)} for m in modalities
+    }
+    agree = {m: len({tuple(o) for o in order[m].values()}) == 1 for m in modalities}
+    seed_list = ", ".join(map(str, seeds))
+    lines = [f"Table 1 over training seeds {seed_list}; overrides: {' '.join(base) or '(defaults)'}.", ""]
+    lines += ["| modality | " + " | ".join(f"order, seed {s} (best first)" for s in seeds) + " | same order |"]
+    lines += ["|---" * (len(seeds) + 2) + "|"]
+    for m in modalities:
+        cols = [" < ".join(VARIANTS[v] for v in order[m][str(s)]) for s in seeds]
+        lines.append(f"| {MODALITIES[m]} | " + " | ".join(cols) + f" | {'yes' if agree[m] else 'no'} |")
+    for s, r in zip(seeds, runs, strict=True):
+        lines += ["", f"### Training seed {s}", "", r["header"], "", r["table"]]
+    text = "\n".join(lines) + "\n"
+    (out / "ablation.md").write_text(text)
+    summary = {"seeds": list(seeds), "overrides": base, "order": order, "same_order": agree, "runs": runs}
+    (out / "ablation.json").write_text(json.dumps(summary, indent=2))
+    return {**summary, "text": text}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
@@ -134,12 +205,22 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--force", action="store_true", help="re-run cells that are already done")
     ap.add_argument("--timing-frames", type=int, default=30, help="batch-1 forward passes timed per cell")
     ap.add_argument("--device", default="cpu", help="evaluation device")
+    ap.add_argument("--jobs", type=int, default=1, help="cells trained at once (default 1)")
+    ap.add_argument("--seeds", type=int, nargs="+", help="training seeds: the table once per seed, and their orders")
     a = ap.parse_args(argv)
+    if a.jobs < 1:
+        sys.exit(f"ablation: --jobs must be at least 1, got {a.jobs}")
     try:
-        s = run_ablation(a.out, a.overrides, a.variants, a.modalities, a.force, a.timing_frames, a.device)
+        if a.seeds:
+            s = run_seeds(
+                a.out, a.seeds, a.overrides, a.variants, a.modalities, a.force, a.timing_frames, a.device, a.jobs
+            )
+            print("\n" + s["text"])
+        else:
+            s = run_ablation(a.out, a.overrides, a.variants, a.modalities, a.force, a.timing_frames, a.device, a.jobs)
+            print("\n" + s["header"] + "\n\n" + s["table"])
     except (RuntimeError, ValueError, FileNotFoundError) as e:
         sys.exit(f"ablation: {e}")
-    print("\n" + s["header"] + "\n\n" + s["table"])
     print(f"\nwrote {Path(a.out) / 'ablation.md'} and {Path(a.out) / 'ablation.json'}")
 
 

@@ -215,3 +215,37 @@ def test_ablation_two_cells(fake_nyu, tmp_path):
         tmp_path / "abl", over + ["trainer.max_steps=2"], ["dit"], ["grays"], timing_frames=2
     )
     assert again["cells"]["dit_grays"]["metrics"] == s["cells"]["dit_grays"]["metrics"]  # reused, not re-run
+
+
+def test_variant_order_ranks_by_rmse():
+    from train.ablation import variant_order
+
+    cells = {f"{v}_grays": {"metrics": {"rmse": r}} for v, r in [("dit", 0.3), ("fastdepth", 0.2), ("codevio8", 0.4)]}
+    cells["dit_gray"] = {"metrics": {"rmse": 0.1}}
+    assert variant_order(cells, "grays") == ["fastdepth", "dit", "codevio8"]
+    assert variant_order(cells, "gray") == ["dit"]
+    assert variant_order(cells, "rgb") == []
+
+
+@pytest.mark.slow
+def test_ablation_over_two_seeds_in_parallel(fake_nyu, tmp_path):
+    """Two training seeds, two cells each, four trainings at once: one table per seed, each seed's order, and
+    whether they agree; the second seed's weights differ from the first's (the seed reaches the training)."""
+    from train.ablation import run_seeds
+
+    over = [o for o in tiny_overrides(fake_nyu, tmp_path) if not o.startswith(("paths.", "hydra."))]
+    s = run_seeds(
+        tmp_path / "abl", [0, 1], over + ["trainer.max_steps=2", "seed=7"], ["dit", "fastdepth"], ["grays"],
+        timing_frames=2, jobs=4,
+    )
+    assert "seed=7" not in s["overrides"]
+    for seed, run in zip([0, 1], s["runs"], strict=True):
+        assert f"seed={seed}" in run["overrides"]
+        assert (tmp_path / "abl" / f"seed{seed}" / "dit_grays" / "eval_depth.json").is_file()
+        assert sorted(s["order"]["grays"][str(seed)]) == ["dit", "fastdepth"]
+    orders = list(s["order"]["grays"].values())
+    assert s["same_order"]["grays"] == (orders[0] == orders[1])
+    r0, r1 = (run["cells"]["dit_grays"]["metrics"]["rmse"] for run in s["runs"])
+    assert r0 != r1
+    md = (tmp_path / "abl" / "ablation.md").read_text()
+    assert md.count("### Training seed") == 2 and "| G-S |" in md

@@ -72,7 +72,7 @@ class DynamicInitConfig:
     ba_iterations: int = 15
     hover_max_px: float = 3.0  # rotation-only fit residual below this over the window: turning in place
     try_every_s: float = 0.1  # s between attempts
-    backfill_s: float = 2.0  # frames before the start window get IMU poses this far back (0.1 m/s^2: 20 cm)
+    backfill_s: float = 10.0  # frames before the start window get IMU poses this far back (every kept frame)
     refine_within_s: float = 10.0  # after a start turning in place, re-initialise in motion within this time
     # priors on the first state (looser than at rest: estimated in motion)
     prior_vel_sigma: float = 0.1  # m/s

@@ -120,8 +120,10 @@ class InitRunner:
         newest = self.frames[-1]
         if res is not None:
             rest = [(s, res.T_w_b) for s in self.frames if s.ts >= w0 and s is not newest]
-            rest += self._before(rest[0][0] if rest else newest, res.T_w_b, res.v_w, res.bias)
-            return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest, {}, res.info, res.noise)
+            first = rest[0][0] if rest else newest
+            before = self._before(first, res.T_w_b, res.v_w, res.bias)
+            info = dict(res.info, **backfill_info(before, first.ts))
+            return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest + before, {}, info, res.noise)
         return self.try_motion(ts, allow_hover=True)
 
     def try_motion(self, ts: int, allow_hover: bool, since: int | None = None) -> StartState | None:
@@ -179,8 +181,9 @@ class InitRunner:
         others = [s for s in win if all(s is not k[0] for k in kfs)]
         T_o, inside = interpolate_poses(np.array([s.ts for s in others], np.int64), r.ts, r.T_w_b)
         frames = [(s, T) for s, T, ok in zip(others, T_o, inside, strict=True) if ok]
-        frames += self._before(sel[0], r.T_w_b[0], r.v_w[0], bias)
-        info = dict(r.info, attempts=self.tries)
+        before = self._before(sel[0], r.T_w_b[0], r.v_w[0], bias)
+        frames += before
+        info = dict(r.info, attempts=self.tries, **backfill_info(before, sel[0].ts))
         return StartState(method, kfs, bias, frames, sigmas, info)
 
     def _window(self, since: int) -> tuple[list, list, float, int]:
@@ -218,6 +221,13 @@ class InitRunner:
         at most ``backfill_s`` back (the unknown accelerometer bias grows the error with the square of time)."""
         older = [s for s in self.frames if first.ts - s_to_ns(self.dyn.backfill_s) <= s.ts < first.ts]
         return propagate_back(self.imu, older, first.ts, T, v, bias)
+
+
+def backfill_info(before: list, t_first: int) -> dict:
+    """``{"backfilled_frames": n, "backfilled_s": span}`` for metrics.json: the frames posed by integrating the IMU
+    back from the start (``before``, from :meth:`InitRunner._before`), and how far back they reach [s]."""
+    span = ns_to_s(t_first - min(s.ts for s, _ in before)) if before else 0.0
+    return {"backfilled_frames": len(before), "backfilled_s": round(span, 3)}
 
 
 def propagate_back(imu, snaps: list, t: int, T: np.ndarray, v: np.ndarray, bias: np.ndarray) -> list:

@@ -238,3 +238,29 @@ def test_a_failed_alignment_is_tried_again_on_the_longest_window(monkeypatch):
     old = InitRunner(InitConfig(), DynamicInitConfig(max_window_s=1.0), imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
     monkeypatch.setattr(runner_mod, "initialize_in_motion", needs_two_seconds)
     assert _steps(old, frames, 3.0) is None  # without a longer window there is no start
+
+
+def test_backfill_reaches_every_kept_frame_and_is_reported():
+    """The frames before a start are integrated back from it as far as ``backfill_s`` reaches (the default: every
+    kept frame); metrics.json's ``initialisation`` says how many and how far back (known answers)."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from runtime.init.runner import InitRunner, Snapshot, backfill_info
+
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.5)
+    ts, g, a = make_imu(m, 5.0, t0_ns=T0)
+    run = InitRunner.__new__(InitRunner)  # only what _before reads
+    run.imu = ImuStream(ts, g, a, 200.0)
+    run.frames = deque(Snapshot(k, T0 + k * 50_000_000, None) for k in range(100))  # 0 - 4.95 s, 20 Hz
+    first = run.frames[80]  # the start window's first frame, 4.0 s
+    T, v = m.body(4.0)[0], m.velocity(4.0)[0]
+    for back_s, n, span in ((2.0, 40, 2.0), (DynamicInitConfig().backfill_s, 80, 4.0)):
+        run.dyn = SimpleNamespace(backfill_s=back_s)
+        before = run._before(first, T, v, np.zeros(6))
+        assert sorted(s.frame_idx for s, _ in before) == list(range(80 - n, 80))
+        assert backfill_info(before, first.ts) == {"backfilled_frames": n, "backfilled_s": span}
+        err = max(np.linalg.norm(Tb[:3, 3] - m.body((s.ts - T0) * 1e-9)[0][:3, 3]) for s, Tb in before)
+        assert err < 0.01  # m: an exact IMU and the true start state, discretisation only
+    assert DynamicInitConfig().backfill_s >= DynamicInitConfig().refine_within_s  # the default reaches every kept one
+    assert backfill_info([], first.ts) == {"backfilled_frames": 0, "backfilled_s": 0.0}

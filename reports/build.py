@@ -201,6 +201,72 @@ def _protocol_tables(path: Path, what: str) -> list[str]:
     return out
 
 
+def _table1_gpu(path: Path) -> list[str]:
+    """Table 1 at a GPU budget on two training seeds (``train.ablation --seeds``), with each modality's order."""
+    d = _load(path)
+    seeds = list(d.get("seeds", {}))
+    st = d.get("setting", {})
+    out = [
+        f"### Table 1 at a GPU budget, training seeds {' and '.join(seeds)}",
+        "",
+        f"{st.get('steps')} steps x batch {st.get('batch')} per cell at {st.get('size')}, {st.get('train_frames')} "
+        f"realistic training frames, {st.get('val_frames')} validation frames, protocol {st.get('protocol')}; best "
+        f"checkpoint: {st.get('best_checkpoint')}. Relative formulation: {st.get('relative')}.",
+        "",
+    ]
+    first = d["seeds"][seeds[0]]["rows"]
+    rows = []
+    for name in first:
+        cells = [d["seeds"][s]["rows"].get(name, {}) for s in seeds]
+        rows.append(
+            [name]
+            + [_num(c.get("rmse")) for c in cells]
+            + [_num(c.get("abs_rel")) for c in cells]
+            + [_num(c.get("delta1"), 1, 100, " %") for c in cells]
+        )
+    head = (
+        ["modality / method"]
+        + [f"RMSE [m], seed {s}" for s in seeds]
+        + [f"AbsRel, seed {s}" for s in seeds]
+        + [f"δ1, seed {s}" for s in seeds]
+    )
+    out += [_table(head, rows), ""]
+    order_rows = [
+        [m, *(" < ".join(d["order"][m][s]) for s in seeds), "yes" if d["same_order"][m] else "no"]
+        for m in d.get("order", {})
+    ]
+    out += [
+        "The order of the variants by RMSE (best first) on each seed:",
+        "",
+        _table(["modality", *(f"seed {s}" for s in seeds), "same order"], order_rows),
+        "",
+    ]
+    f = d.get("followup_l1_depth_loss")
+    if f:
+        g = f["g_s_rmse_m"]
+        ks = sorted(g["dit_nll"], key=int)
+        out += [
+            f"G-S RMSE [m] over training seeds {', '.join(ks)} (the follow-up run added seeds 2 and 3, and DiT with "
+            "an L1 depth loss, which lost):",
+            "",
+            _table(
+                ["method", *(f"seed {k}" for k in ks)],
+                [
+                    [label, *(_num(g[key][k]) for k in ks)]
+                    for key, label in (
+                        ("fastdepth", "FastDepth"),
+                        ("dit_nll", "Ours (DiT), Eq. 6"),
+                        ("dit_l1", "Ours (DiT), L1 depth + Eq. 6 for the uncertainty"),
+                        ("interpolation", "interpolation (reference)"),
+                    )
+                ],
+            ),
+            "",
+        ]
+    out += [_source_block([path], d.get("command", ""), d.get("device", "not recorded")), ""]
+    return out
+
+
 def _table1() -> list[str]:
     out = ["## Table 1: depth networks x input modalities", ""]
     nb = REPO / "notebooks" / "01_depth_modalities.ipynb"
@@ -227,6 +293,9 @@ def _table1() -> list[str]:
         if shipped:
             out += ["The default model shipped when notebook 01 last ran, through ONNX Runtime, same frames:", ""]
             out += [shipped.partition("\n\n")[2].strip() or shipped, ""]
+    gpu = RESULTS / "depth_ablations" / "table1_gpu.json"
+    if gpu.is_file():
+        out += _table1_gpu(gpu)
     vm = REPO / "runtime" / "assets" / "default_model" / "val_metrics.json"
     if vm.is_file():
         m = _load(vm)

@@ -35,7 +35,7 @@ from pathlib import Path  # noqa: E402
 
 from train.metrics import format_table  # noqa: E402
 
-__all__ = ["main", "run_ablation", "run_seeds", "variant_order", "VARIANTS", "MODALITIES"]
+__all__ = ["main", "parse_args", "run_ablation", "run_seeds", "variant_order", "VARIANTS", "MODALITIES"]
 
 REPO = Path(__file__).resolve().parents[1]
 #: Table 1 order and labels.
@@ -194,7 +194,22 @@ def run_seeds(
     return {**summary, "text": text}
 
 
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line; Hydra overrides (``key=value``) may stand anywhere, also after ``--variants`` or
+    ``--seeds``, whose lists would otherwise swallow them.
+
+    >>> a = parse_args(["--variants", "dit", "fastdepth", "trainer=gpu", "--seeds", "0", "1", "seed=3"])
+    >>> a.variants, a.seeds, a.overrides
+    (['dit', 'fastdepth'], [0, 1], ['trainer=gpu', 'seed=3'])
+    >>> parse_args(["--out", "runs/lr=1e-3", "model.kl_weight=0"]).out
+    'runs/lr=1e-3'
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    valued = ("--out", "--timing-frames", "--device", "--jobs")  # options that take one value (it may hold '=')
+    is_override = [
+        "=" in a and not a.startswith("-") and (i == 0 or argv[i - 1] not in valued) for i, a in enumerate(argv)
+    ]
+    overrides = [a for a, o in zip(argv, is_override, strict=True) if o]
     ap = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
     )
@@ -207,7 +222,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--device", default="cpu", help="evaluation device")
     ap.add_argument("--jobs", type=int, default=1, help="cells trained at once (default 1)")
     ap.add_argument("--seeds", type=int, nargs="+", help="training seeds: the table once per seed, and their orders")
-    a = ap.parse_args(argv)
+    a = ap.parse_args([x for x, o in zip(argv, is_override, strict=True) if not o])
+    a.overrides = overrides
+    return a
+
+
+def main(argv: list[str] | None = None) -> None:
+    a = parse_args(argv)
     if a.jobs < 1:
         sys.exit(f"ablation: --jobs must be at least 1, got {a.jobs}")
     try:

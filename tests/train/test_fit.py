@@ -249,3 +249,15 @@ def test_ablation_over_two_seeds_in_parallel(fake_nyu, tmp_path):
     assert r0 != r1
     md = (tmp_path / "abl" / "ablation.md").read_text()
     assert md.count("### Training seed") == 2 and "| G-S |" in md
+
+
+def test_ablation_command_line_takes_overrides_anywhere():
+    """Hydra overrides after a list option (``--variants a b key=value``) are overrides, not list items; an
+    option's own value may hold '='."""
+    from train.ablation import parse_args
+
+    a = parse_args(["--variants", "dit", "codevio8", "--modalities", "gray", "grays", "trainer=gpu", "--jobs", "2"])
+    assert (a.variants, a.modalities, a.jobs) == (["dit", "codevio8"], ["gray", "grays"], 2)
+    assert a.overrides == ["trainer=gpu"]
+    a = parse_args(["seed=1", "--seeds", "0", "1", "data.root=/x", "--out", "o/a=b"])
+    assert (a.seeds, a.overrides, a.out) == ([0, 1], ["seed=1", "data.root=/x"], "o/a=b")

@@ -30,7 +30,7 @@ from models.blocks import (
     modality_of,
     scaled_channels,
 )
-from models.ditnet import DEPTH_INIT, DEPTH_MAX, DEPTH_MIN, REL_LOG_RANGE, DiTNet
+from models.ditnet import DEPTH_INIT, DEPTH_MAX, DEPTH_MIN, DiTNet, relative_depth
 
 
 def codevio(
@@ -146,8 +146,7 @@ class FastDepth(nn.Module):
             if i in skips:
                 x = x + skips[i]
         if self.relative:
-            k = REL_LOG_RANGE
-            depth = fill * torch.exp(k * torch.tanh(self.head(x) / k))
+            depth = relative_depth(torch.log(fill.clamp(min=1e-6)), self.head(x))
         else:
             depth = self.to_depth(self.head(x))
         return {"depth": depth, "uncertainty": None, "mu": None, "logvar": None, "code": None}

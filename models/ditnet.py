@@ -146,6 +146,13 @@ class UNetStream(nn.Module):
         return uncertainty, tuple(feats)
 
 
+def relative_depth(log_fill: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Relative mode's output: ``fill * exp(K tanh(x / K))`` [m] from ``log fill`` and a head's logit ``x``,
+    ``K = REL_LOG_RANGE`` (a bounded log correction of the fill; ``x = 0`` gives the fill)."""
+    k = REL_LOG_RANGE
+    return torch.exp(log_fill + k * torch.tanh(x / k))
+
+
 class DepthRecognition(nn.Module):
     """Training-time CVAE encoder: GT depth (B,1,H,W) [m] + UNet stride-32 feature -> (mu, logvar) (B, C).
 
@@ -250,8 +257,7 @@ class DepthDecoder(nn.Module):
                 if self.inject is not None:
                     x = x + self.inject[i](code)[:, :, None, None]
         if self.relative:
-            k = REL_LOG_RANGE
-            return torch.exp(log_fill + k * torch.tanh(self.head(x) / k))
+            return relative_depth(log_fill, self.head(x))
         return self.to_depth(self.head(x))
 
 

@@ -112,11 +112,11 @@ def run_ablation(
     eval_args = {"split": "val", "device": device, "timing_frames": timing_frames, "median_baseline": True}
     cells = [(v, m) for m in modalities for v in variants]  # Table 1 order
     with ThreadPoolExecutor(max(1, int(jobs))) as pool:
-        done = list(pool.map(lambda vm: _cell(out, *vm, overrides, force, eval_args), cells))
+        done = dict(zip(cells, pool.map(lambda vm: _cell(out, *vm, overrides, force, eval_args), cells), strict=True))
     results, rows = {}, {}
     for m in modalities:
         for v in variants:
-            r = done[cells.index((v, m))]
+            r = done[(v, m)]
             results[f"{v}_{m}"] = r
             rows[f"{MODALITIES[m]} / {VARIANTS[v]}"] = {**r["metrics"], "ms": r["ms"]}
         itp = next(

@@ -214,7 +214,9 @@ class Camera:
     ``model`` names the distortion: ``"radtan"`` (radial-tangential / plumb bob, ``dist = (k1, k2, p1, p2)``) or
     ``"equidistant"`` (Kannala-Brandt fisheye as OpenCV's ``cv2.fisheye``, ``dist = (k1, k2, k3, k4)``: a ray at
     angle ``theta`` from the optical axis lands at radius ``theta (1 + k1 theta^2 + ... + k4 theta^8)`` on the
-    normalised plane). Image size ``(width, height)`` in pixels.
+    normalised plane). Image size ``(width, height)`` in pixels. ``line_delay_s``: a rolling shutter's time between
+    consecutive rows [s], the middle row read at the image's stamp (0: a global shutter; cam0 ``sensor.yaml``'s
+    optional ``line_delay_s``).
 
     >>> fish = Camera(100, 100, 50, 40, 100, 80, (0.0, 0.0, 0.0, 0.0), "equidistant")
     >>> fish.project(np.array([1.0, 0.0, 1.0]))[0].round(6).tolist()  # 45 deg: radius pi/4 on the plane
@@ -229,10 +231,13 @@ class Camera:
     height: int
     dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     model: str = "radtan"
+    line_delay_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.model not in CAMERA_MODELS:
             raise ValueError(f"camera model {self.model!r} is not one of {CAMERA_MODELS}")
+        if not self.line_delay_s >= 0.0:
+            raise ValueError(f"camera line_delay_s={self.line_delay_s}: must be >= 0 (0 = global shutter)")
 
     @property
     def K(self) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -326,6 +326,8 @@ def _cam_yaml(cam: Camera, T_b_c: np.ndarray, rate: int, depth: bool = False) ->
         f"distortion_model: {'equidistant' if cam.is_fisheye else 'radial-tangential'}\n"
         f"distortion_coefficients: [{', '.join(repr(float(d)) for d in cam.dist)}]\n"
     )
+    if cam.line_delay_s > 0 and not depth:
+        body += f"line_delay_s: {cam.line_delay_s!r}  # rolling shutter: s between rows, the middle row at the stamp\n"
     if depth:
         body += f"depth_scale: {DEPTH_SCALE!r}  # PNG value = depth [m] * depth_scale, 0 = invalid\n"
     return head + body
@@ -507,6 +509,8 @@ def _write_euroc(
     if physics is not None:
         rng_cam = np.random.default_rng(np.random.SeedSequence([int(seed), 0xCA2]))
         written_cam = perturbed_calibration(cam, physics, rng_cam, scale)
+        if physics.readout_s > 0:
+            written_cam = replace(written_cam, line_delay_s=physics.readout_s / cam.height)
     (mav0 / "cam0" / "sensor.yaml").write_text(_cam_yaml(written_cam, EUROC_T_B_C0, cam_rate))
     (mav0 / "depth0" / "sensor.yaml").write_text(_cam_yaml(cam, EUROC_T_B_C0, cam_rate, depth=True))
     imu_dir.mkdir(parents=True)

@@ -93,6 +93,11 @@ class TrackerConfig:
     ransac_confidence: float = 0.99
     normalize: bool = True  # gain/bias compensation: KLT on images of fixed mean and spread (exposure changes)
     use_imu_rotation: bool = True  # predict the flow from the gyro rotation (infinite-depth homography)
+    line_delay_s: float | None = None  # s between rows of a rolling shutter (None: the camera's sensor.yaml; 0: global)
+
+    def __post_init__(self) -> None:
+        if self.line_delay_s is not None and not self.line_delay_s >= 0.0:
+            raise ValueError(f"tracker.line_delay_s={self.line_delay_s}: must be >= 0 (0 = global shutter)")
 
     @property
     def fb_threshold_px(self) -> float:
@@ -148,6 +153,7 @@ class FeatureTracker:
         self.detector = FeatureDetector(camera.width, camera.height, feat_cfg)
         self.R_b_c = np.asarray(T_b_c, dtype=np.float64)[:3, :3]
         self.K = camera.K
+        self.line_delay_s = float(camera.line_delay_s if self.cfg.line_delay_s is None else self.cfg.line_delay_s)
         self._crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, self.cfg.max_iter, self.cfg.eps)
         self._dist = np.asarray(camera.dist, dtype=np.float64)
         self._und_crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
@@ -162,6 +168,9 @@ class FeatureTracker:
         self.prev_image: np.ndarray | None = None
         self.ids = np.zeros(0, np.int64)
         self.uv = np.zeros((0, 2), np.float32)
+        self.vel = np.zeros((0, 2), np.float32)  # px/s of each track over the last frame interval (rolling shutter)
+        self._prev_ts: int | None = None
+        self._last_motion: tuple[float, np.ndarray | None] | None = None  # (interval [s], gyro rotation R_b0_b1)
 
     @property
     def n_tracks(self) -> int:
@@ -190,9 +199,31 @@ class FeatureTracker:
         )
         return out.reshape(-1, 2)
 
+    def rolling_shutter_pixels(self) -> np.ndarray:
+        """The tracks' pixels (N, 2) moved to where they were at the frame's stamp (the middle row's time).
+
+        A rolling shutter reads row ``v`` at ``(v - (H - 1) / 2) * line_delay_s`` after the stamp, so a point moving
+        at ``vel`` px/s is seen that far along its motion; first order: ``uv - vel * dt(v)``. A track's velocity is
+        its displacement over the last frame interval; a track born this frame takes the flow of the gyro
+        rotation there (:meth:`predict`). With ``line_delay_s`` 0 the pixels are returned as they are. The KLT keeps
+        the image's pixels (``uv``); the normalised coordinates that the estimator uses (``xn``, ``uv_u``) are
+        these."""
+        uv = self.uv.astype(np.float64)
+        if self.line_delay_s <= 0.0 or uv.shape[0] == 0:
+            return uv
+        dt_row = (uv[:, 1] - 0.5 * (self.camera.height - 1)) * self.line_delay_s
+        return uv - self.vel.astype(np.float64) * dt_row[:, None]
+
+    def _gyro_velocity(self, uv: np.ndarray) -> np.ndarray:
+        """Pixel velocity (N, 2) [px/s] of far points under the last interval's gyro rotation (0 before one)."""
+        if self._last_motion is None or self._last_motion[1] is None or uv.shape[0] == 0:
+            return np.zeros((uv.shape[0], 2), np.float32)
+        dt, R = self._last_motion
+        return ((self.predict(uv, R) - uv) / dt).astype(np.float32)
+
     def _features(self, ts: int, flow: float = 0.0, lost: int = 0, ransac_out: int = 0) -> FrameFeatures:
         uv = self.uv.astype(np.float64)
-        xn = self.normalize(uv)
+        xn = self.normalize(self.rolling_shutter_pixels())
         uv_u = np.stack(
             [self.camera.fx * xn[:, 0] + self.camera.cx, self.camera.fy * xn[:, 1] + self.camera.cy], -1
         )
@@ -227,8 +258,12 @@ class FeatureTracker:
                 f"camera is {self.camera.width}x{self.camera.height}"
             )
         pyr = self._pyramid(image)
+        dt = (ts - self._prev_ts) * 1e-9 if self._prev_ts is not None else 0.0
+        self._prev_ts = ts
+        self._last_motion = (dt, R_b0_b1) if dt > 0 else None
         if self.prev_pyr is None or self.ids.size == 0:
             self.prev_pyr, self.prev_image = pyr, image
+            self.vel = np.zeros((self.ids.size, 2), np.float32)
             return self._features(ts)
         p0 = self.uv.reshape(-1, 1, 2).astype(np.float32)
         init = self.predict(self.uv, R_b0_b1 if c.use_imu_rotation else None).reshape(-1, 1, 2)
@@ -272,6 +307,7 @@ class FeatureTracker:
         flow = float(np.median(np.linalg.norm(p1[ok] - p0.reshape(-1, 2)[ok], axis=1))) if ok.any() else 0.0
         n_lost = int(self.ids.size - ok.sum())
         self.ids = self.ids[ok]
+        self.vel = ((p1[ok] - p0.reshape(-1, 2)[ok]) / dt).astype(np.float32) if dt > 0 else self.vel[ok]
         self.uv = p1[ok].astype(np.float32)
         self.prev_pyr, self.prev_image = pyr, image
         return self._features(ts, flow, n_lost, n_ransac_out)
@@ -306,6 +342,7 @@ class FeatureTracker:
             ids = np.arange(self.next_id, self.next_id + new.shape[0], dtype=np.int64)
             self.next_id += new.shape[0]
             self.ids = np.concatenate([self.ids, ids])
+            self.vel = np.concatenate([self.vel, self._gyro_velocity(new.astype(np.float64))], 0)
             self.uv = np.concatenate([self.uv, new.astype(np.float32)], 0)
         if self.prev_pyr is None:
             self.prev_pyr, self.prev_image = self._pyramid(image), image
@@ -335,4 +372,4 @@ class FeatureTracker:
         if ids.size == 0 or self.ids.size == 0:
             return
         keep = ~np.isin(self.ids, ids)
-        self.ids, self.uv = self.ids[keep], self.uv[keep]
+        self.ids, self.uv, self.vel = self.ids[keep], self.uv[keep], self.vel[keep]

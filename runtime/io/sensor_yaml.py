@@ -120,7 +120,8 @@ def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
     """Read cam0's ``sensor.yaml``.
 
     Returns:
-        camera (pinhole + radtan, size from ``resolution`` [w, h]), ``T_b_c`` (4, 4) from ``T_BS``,
+        camera (pinhole + radtan, size from ``resolution`` [w, h]; the optional ``line_delay_s`` of a rolling
+        shutter, seconds between rows with the middle row at the stamp), ``T_b_c`` (4, 4) from ``T_BS``,
         ``rate_hz``.
 
     Raises:
@@ -156,7 +157,10 @@ def read_camera_yaml(path: str | Path) -> tuple[Camera, np.ndarray, float]:
         raise EurocFormatError(f"{path}: rate_hz must be positive, got {rate}")
     T_b_c = _matrix4(d, "T_BS", path)
     model = "equidistant" if dmodel == "equidistant" else "radtan"
-    cam = Camera(fx, fy, cx, cy, int(w), int(h), (dist[0], dist[1], dist[2], dist[3]), model)
+    line_delay = sensor_float(d.get("line_delay_s", 0.0), "line_delay_s", path)
+    if line_delay < 0:
+        raise EurocFormatError(f"{path}: line_delay_s must be >= 0 (0 = global shutter), got {line_delay}")
+    cam = Camera(fx, fy, cx, cy, int(w), int(h), (dist[0], dist[1], dist[2], dist[3]), model, line_delay)
     return cam, T_b_c, rate
 
 

@@ -8,7 +8,7 @@ from runtime.frontend.features import FeatureConfig, FeatureDetector
 from runtime.frontend.keyframes import KeyframeConfig, KeyframeSelector, rotation_compensated_parallax
 from runtime.frontend.tracking import FeatureTracker, TrackerConfig
 from runtime.frontend.triangulation import TriangulationConfig, triangulate
-from runtime.geometry import inv_T, make_T, so3_exp
+from runtime.geometry import Camera, inv_T, make_T, so3_exp
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS
 
 
@@ -222,3 +222,64 @@ def test_weak_cells_get_their_minimum_from_the_low_threshold():
     assert n0[right].max() == 0  # the faint half holds no corner at the normal threshold
     assert n2[right].min() >= 3  # every faint cell gets its minimum
     assert len(p2) <= 240
+
+
+def _rolling_shutter_frame(base: np.ndarray, x_at_stamp: float, speed: float, line_delay: float) -> np.ndarray:
+    """``base`` moving right at ``speed`` px/s, seen by a rolling shutter: row ``v`` is read ``(v - (H-1)/2) *
+    line_delay`` after the stamp, when the content has moved ``x_at_stamp + speed * that`` px."""
+    h, w = base.shape
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    shift = x_at_stamp + speed * (rows - 0.5 * (h - 1)) * line_delay
+    map_x = (np.arange(w, dtype=np.float32)[None] - shift).astype(np.float32)
+    map_y = np.repeat(rows, w, 1).astype(np.float32)
+    return cv2.remap(base, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_rolling_shutter_correction_puts_tracks_at_the_stamp():
+    """A texture moving at 400 px/s under a rolling shutter (1e-4 s a row: up to 9.6 px of skew at the top and
+    bottom of a 480-row image): corrected, every track sits where the content was at the stamp (known answer);
+    uncorrected, it is off by the row's delay times the speed."""
+    speed, line_delay, dt = 400.0, 1e-4, 0.05
+    cam = EUROC_CAM.pinhole()
+    base = _texture()
+    frames = [_rolling_shutter_frame(base, speed * k * dt, speed, line_delay) for k in range(4)]
+    errors = {}
+    for delay in (0.0, line_delay):
+        trk = FeatureTracker(cam, EUROC_T_BS, FeatureConfig(max_features=150), TrackerConfig(line_delay_s=delay))
+        assert trk.line_delay_s == delay
+        trk.track(0, frames[0])
+        f0 = trk.replenish(0, frames[0])
+        for k in range(1, 4):
+            f = trk.track(int(k * dt * 1e9), frames[k])
+        common, i0, i1 = np.intersect1d(f0.ids, f.ids, return_indices=True)
+        assert len(common) > 0.5 * len(f0.ids)
+        # the stamp positions: where the content of the first frame's stamp position went after 3 frames ...
+        skew0 = speed * (f0.uv[i0, 1] - 0.5 * (cam.height - 1)) * line_delay
+        expected = f0.uv[i0, 0] - skew0 + speed * 3 * dt
+        got = f.uv_u[i1, 0]  # ... and where the estimator is told the track is (pinhole: uv_u = corrected pixels)
+        errors[delay] = np.abs(got - expected)
+    skew = speed * (f.uv[i1, 1] - 0.5 * (cam.height - 1)) * line_delay
+    assert np.median(np.abs(f.uv[i1, 0] - f.uv_u[i1, 0] - skew)) < 0.1  # the KLT keeps the image's pixels
+    assert np.median(errors[line_delay]) < 0.1
+    assert np.median(np.abs(errors[0.0] - np.abs(skew))) < 0.1  # uncorrected: off by the skew
+    with pytest.raises(ValueError, match="line_delay_s"):
+        TrackerConfig(line_delay_s=-1e-5)
+
+
+def test_a_camera_reads_its_line_delay_from_sensor_yaml(tmp_path):
+    from runtime.io.asl_format import EurocFormatError
+    from runtime.io.sensor_yaml import read_camera_yaml
+    from sim.euroc import _cam_yaml
+
+    cam = EUROC_CAM.pinhole()
+    (tmp_path / "gs.yaml").write_text(_cam_yaml(cam, EUROC_T_BS, 20))
+    assert "line_delay_s" not in (tmp_path / "gs.yaml").read_text()
+    assert read_camera_yaml(tmp_path / "gs.yaml")[0].line_delay_s == 0.0
+    rs = Camera(*cam.intrinsics, cam.width, cam.height, line_delay_s=3.125e-5)
+    (tmp_path / "rs.yaml").write_text(_cam_yaml(rs, EUROC_T_BS, 20))
+    read = read_camera_yaml(tmp_path / "rs.yaml")[0]
+    assert read == rs and FeatureTracker(read, EUROC_T_BS).line_delay_s == 3.125e-5
+    assert FeatureTracker(read, EUROC_T_BS, cfg=TrackerConfig(line_delay_s=0.0)).line_delay_s == 0.0  # override
+    (tmp_path / "bad.yaml").write_text((tmp_path / "rs.yaml").read_text().replace("3.125e-05", "-1e-5"))
+    with pytest.raises(EurocFormatError, match="line_delay_s"):
+        read_camera_yaml(tmp_path / "bad.yaml")

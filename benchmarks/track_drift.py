@@ -1,0 +1,143 @@
+"""How far the front end's tracks drift from the true projection of the point they started on, by track age.
+
+    python benchmarks/track_drift.py --sequence DIR [--line-delay 0 auto] [--frames N] [--out F.json]
+
+Needs a sequence rendered by ``dit-sim euroc`` (ground-truth depth in ``mav0/depth0``, ground truth, and
+``sim_info.json``, whose ``render_camera`` and ``time_offset_s`` give the true camera and clock). The runtime's
+:class:`runtime.frontend.tracking.FeatureTracker` follows corners through the images (replenished below 150 tracks);
+each track's point is fixed at its second observation, the first with a velocity, by back-projecting the pixel
+with the rendered depth (left out where the depth varies by more than 1 % within 1 px: edges) through the
+ground-truth camera pose. In every later frame the point is projected with the true camera and compared with
+the track's pixel as the estimator sees it: :meth:`FeatureTracker.rolling_shutter_pixels`, the image pixel moved to
+the stamp's time when ``--line-delay`` is not 0. ``auto`` takes the line delay that cam0's ``sensor.yaml`` states.
+
+The error of a track grows with its age: the KLT follows a patch whose look changes with the viewpoint, and a
+rolling shutter puts each row at its own time. Prints the median and 90th percentile per age bin for each line
+delay, and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import write_json
+
+#: Track ages [frames] reported; each bin holds the ages from its value to 1.25 times it.
+AGES = (1, 2, 5, 10, 20, 30, 50, 80)
+#: A point whose depth varies by more than this fraction within 1 px of its bilinear support lies on an edge.
+EDGE_REL = 0.01
+#: Fewest tracks before new corners are detected.
+MIN_TRACKS = 150
+
+
+def _bilinear(depth: np.ndarray, uv: np.ndarray) -> float:
+    """Depth at a subpixel (2,), 0 outside the image or next to a pixel without depth, or across an edge."""
+    x0, y0 = int(np.floor(uv[0])), int(np.floor(uv[1]))
+    h, w = depth.shape
+    if not (1 <= x0 < w - 2 and 1 <= y0 < h - 2):
+        return 0.0
+    patch = depth[y0 - 1 : y0 + 3, x0 - 1 : x0 + 3]
+    if patch.min() <= 0 or patch.max() - patch.min() > EDGE_REL * patch.max():
+        return 0.0
+    ax, ay = uv[0] - x0, uv[1] - y0
+    q = depth[y0 : y0 + 2, x0 : x0 + 2].astype(np.float64)
+    return float((1 - ay) * ((1 - ax) * q[0, 0] + ax * q[0, 1]) + ay * ((1 - ax) * q[1, 0] + ax * q[1, 1]))
+
+
+def track_errors(seq, line_delay_s: float, frames: int | None = None) -> dict[int, list[float]]:
+    """Errors [px] of the tracks against the true projection of their points, by age [frames]."""
+    from runtime.frontend.tracking import FeatureTracker, TrackerConfig
+    from runtime.geometry import Camera
+
+    info = json.loads((Path(seq.root) / "sim_info.json").read_text())
+    rc = info.get("render_camera")
+    true_cam = Camera(*rc[:4], seq.camera.width, seq.camera.height, tuple(rc[4:])) if rc else seq.camera
+    offset_ns = int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
+    tracker = FeatureTracker(seq.camera, seq.T_b_c, cfg=TrackerConfig(line_delay_s=line_delay_s))
+    t_lo, t_hi = int(seq.gt.ts[0]), int(seq.gt.ts[-1])
+    points: dict[int, tuple[int, np.ndarray] | None] = {}
+    seen: set[int] = set()
+    errors: dict[int, list[float]] = {}
+    n = len(seq.frame_ts) if frames is None else min(frames, len(seq.frame_ts))
+    for i in range(n):
+        ts = int(seq.frame_ts[i])
+        image = seq.image(i)
+        tracker.track(ts, image)
+        if tracker.n_tracks < MIN_TRACKS:
+            tracker.replenish(ts, image)
+        T_w_c = seq.gt.pose_at(min(max(ts + offset_ns, t_lo), t_hi)) @ seq.T_b_c
+        uv_all = tracker.rolling_shutter_pixels()
+        depth = None
+        for tid, uv in zip(tracker.ids.tolist(), uv_all, strict=True):
+            if tid not in seen:  # first observation: no velocity yet
+                seen.add(tid)
+                continue
+            if tid not in points:
+                depth = seq.depth(i) if depth is None else depth
+                z = _bilinear(depth, uv)
+                if z <= 0:
+                    points[tid] = None
+                    continue
+                xn = true_cam.pixel_to_normalized(uv[None])[0]
+                points[tid] = (i, T_w_c[:3, :3] @ (np.array([xn[0], xn[1], 1.0]) * z) + T_w_c[:3, 3])
+                continue
+            p = points[tid]
+            if p is None:
+                continue
+            X_c = T_w_c[:3, :3].T @ (p[1] - T_w_c[:3, 3])
+            if X_c[2] < 0.1:
+                continue
+            proj, _ = true_cam.project(X_c[None])
+            errors.setdefault(i - p[0], []).append(float(np.linalg.norm(proj[0] - uv)))
+    return errors
+
+
+def summarise(errors: dict[int, list[float]]) -> list[dict]:
+    """Median and 90th percentile [px] per age bin of :data:`AGES`."""
+    rows = []
+    for a in AGES:
+        e = np.array([x for k in range(a, int(a * 1.25) + 1) for x in errors.get(k, [])])
+        if e.size:
+            med, p90 = float(np.median(e)), float(np.percentile(e, 90))
+            rows.append({"age": a, "n": int(e.size), "median_px": med, "p90_px": p90})
+    return rows
+
+
+def main(argv: list[str] | None = None) -> dict:
+    from runtime.io.euroc import read_euroc
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sequence", required=True, help="a dit-sim euroc folder (with mav0/depth0 and sim_info.json)")
+    ap.add_argument("--line-delay", nargs="+", default=["0", "auto"], help="s between rows, or auto (sensor.yaml)")
+    ap.add_argument("--frames", type=int, default=None, help="the first N frames")
+    ap.add_argument("--out", default=None, help="JSON path")
+    args = ap.parse_args(argv)
+    try:
+        seq = read_euroc(Path(args.sequence))
+    except (OSError, ValueError) as e:
+        sys.exit(f"track_drift: {e}")
+    if seq.gt is None or not seq.has_depth or not (Path(args.sequence) / "sim_info.json").is_file():
+        sys.exit(f"track_drift: {args.sequence} needs a ground truth, mav0/depth0 and sim_info.json (dit-sim euroc)")
+    res = {}
+    for ld in args.line_delay:
+        delay = seq.camera.line_delay_s if ld == "auto" else float(ld)
+        rows = summarise(track_errors(seq, delay, args.frames))
+        res[f"{delay:g}"] = rows
+        print(f"\nline delay {delay:g} s ({ld}): track error against the true projection [px]")
+        print("| age [frames] | observations | median | p90 |")
+        print("|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['age']} | {r['n']} | {r['median_px']:.3f} | {r['p90_px']:.3f} |")
+    doc = {"sequence": str(args.sequence), "frames": args.frames, "by_line_delay": res}
+    if args.out:
+        print(f"wrote {write_json(args.out, doc)}")
+    return doc
+
+
+if __name__ == "__main__":
+    main()

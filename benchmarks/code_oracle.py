@@ -118,11 +118,8 @@ def evaluate(net, sets: dict, radii=(0.0,), iters: int = 12) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from omegaconf import OmegaConf
-
-    from benchmarks.common import machine_info, write_json
+    from benchmarks.common import gs_protocol_sets, machine_info, write_json
     from runtime.network import DepthNetwork, default_model_dir
-    from train.evaluate import protocol_sets
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", default=str(default_model_dir()), help="exported model directory")
@@ -136,16 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
     if any(r < 0 for r in args.radius) or args.iters < 1:
         raise SystemExit("code_oracle: --radius must be >= 0 and --iters >= 1")
     net = DepthNetwork(args.model)
-    cfg = OmegaConf.create(
-        {
-            "protocol": "gs",
-            "seed": 0,
-            "real": args.real,
-            "limit": args.limit,
-            "sim": {"n_val": args.sim_val, "seed": 1000, "realism": True, "root": None},
-        }
-    )
-    res = evaluate(net, protocol_sets(cfg, net.modality, net.height, net.width), tuple(args.radius), args.iters)
+    res = evaluate(net, gs_protocol_sets(net, args.real, args.sim_val, args.limit), tuple(args.radius), args.iters)
     for name, r in res.items():
         print(f"\n{name}: {r['frames']} frames")
         print("| depth | RMSE [m] | over c = 0 |")

@@ -632,3 +632,23 @@ def bench_codes(
         for i in range(n_random)
     ]
     return codes
+
+
+def gs_protocol_sets(net, real: str | None, sim_val: int, limit: int | None = None) -> dict:
+    """The frame sets of the paper's G-S protocol for an exported model ``net`` (:class:`runtime.network.DepthNetwork`):
+    ``real`` RGB-D folders (or None) and ``sim_val`` fresh realistic synthetic rooms (seed 1000), as ``dit-eval
+    depth`` builds them (:func:`train.evaluate.protocol_sets`)."""
+    from omegaconf import OmegaConf
+
+    from train.evaluate import protocol_sets
+
+    cfg = OmegaConf.create(
+        {
+            "protocol": "gs",
+            "seed": 0,
+            "real": real,
+            "limit": limit,
+            "sim": {"n_val": sim_val, "seed": 1000, "realism": True, "root": None},
+        }
+    )
+    return protocol_sets(cfg, net.modality, net.height, net.width)

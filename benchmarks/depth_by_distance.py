@@ -153,11 +153,8 @@ def _print_bins(title: str, rows: list[dict], lo_key: str, hi_key: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from omegaconf import OmegaConf
-
-    from benchmarks.common import machine_info, write_json
+    from benchmarks.common import gs_protocol_sets, machine_info, write_json
     from runtime.network import DepthNetwork, default_model_dir
-    from train.evaluate import protocol_sets
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", default=str(default_model_dir()), help="exported model directory")
@@ -169,16 +166,7 @@ def main(argv: list[str] | None = None) -> dict:
     net = DepthNetwork(args.model)
     if not net.uses_sparse:
         raise SystemExit(f"{args.model}: a {net.modality} model has no sparse input to compare with")
-    cfg = OmegaConf.create(
-        {
-            "protocol": "gs",
-            "seed": 0,
-            "real": args.real,
-            "limit": args.limit,
-            "sim": {"n_val": args.sim_val, "seed": 1000, "realism": True, "root": None},
-        }
-    )
-    res = evaluate(net, protocol_sets(cfg, net.modality, net.height, net.width))
+    res = evaluate(net, gs_protocol_sets(net, args.real, args.sim_val, args.limit))
     for name, r in res.items():
         dep = r["departure_at_samples"]
         print(

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import write_json
+from runtime.dense.lookup import bilinear
 
 #: Track ages [frames] reported; each bin holds the ages from its value to 1.25 times it.
 AGES = (1, 2, 5, 10, 20, 30, 50, 80)
@@ -44,9 +45,7 @@ def _bilinear(depth: np.ndarray, uv: np.ndarray) -> float:
     patch = depth[y0 - 1 : y0 + 3, x0 - 1 : x0 + 3]
     if patch.min() <= 0 or patch.max() - patch.min() > EDGE_REL * patch.max():
         return 0.0
-    ax, ay = uv[0] - x0, uv[1] - y0
-    q = depth[y0 : y0 + 2, x0 : x0 + 2].astype(np.float64)
-    return float((1 - ay) * ((1 - ax) * q[0, 0] + ax * q[0, 1]) + ay * ((1 - ax) * q[1, 0] + ax * q[1, 1]))
+    return float(bilinear(depth.astype(np.float64), np.asarray(uv, np.float64)[None])[0])
 
 
 def track_errors(seq, line_delay_s: float, frames: int | None = None) -> dict[int, list[float]]:

@@ -215,8 +215,9 @@ class FeatureTracker:
         return uv - self.vel.astype(np.float64) * dt_row[:, None]
 
     def _gyro_velocity(self, uv: np.ndarray) -> np.ndarray:
-        """Pixel velocity (N, 2) [px/s] of far points under the last interval's gyro rotation (0 before one)."""
-        if self._last_motion is None or self._last_motion[1] is None or uv.shape[0] == 0:
+        """Pixel velocity (N, 2) [px/s] of far points under the last interval's gyro rotation (0 before one, and
+        without a rolling shutter, where nothing reads it)."""
+        if self.line_delay_s <= 0.0 or self._last_motion is None or self._last_motion[1] is None or uv.shape[0] == 0:
             return np.zeros((uv.shape[0], 2), np.float32)
         dt, R = self._last_motion
         return ((self.predict(uv, R) - uv) / dt).astype(np.float32)

@@ -584,9 +584,11 @@ class SlamSystem:
         return fill_trajectory(self.records, self.map.history, mode or self.cfg.trajectory_mode)
 
     def keyframe_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """Final keyframe poses: ts (K,) ns, T_w_b (K, 4, 4) in keyframe order."""
+        """Final keyframe poses: ts (K,) ns, T_w_b (K, 4, 4) in time order (a keyframe made for frames before an
+        in-motion start has a later id than the start's keyframe and an earlier time; ``keyframes.txt`` is a TUM
+        file, whose stamps increase)."""
         hist = self.map.history
-        ids = sorted(hist)
+        ids = sorted(hist, key=lambda k: (hist[k][0], k))
         ts = np.array([hist[k][0] for k in ids], dtype=np.int64)
         T = np.array([hist[k][1] for k in ids]).reshape(-1, 4, 4)
         return ts, T

@@ -201,6 +201,21 @@ def test_dense_preset_is_generated_from_the_typed_config():
     assert dataclasses.asdict(DenseConfig.from_dict(yaml.safe_load(text))) == dataclasses.asdict(DenseConfig())
 
 
+def test_keyframe_trajectory_is_in_time_order_whatever_the_ids():
+    """A keyframe made for frames before an in-motion start comes after the start's keyframe in id order."""
+    from types import SimpleNamespace
+
+    from runtime.slam import SlamSystem
+
+    T = [np.eye(4) for _ in range(3)]
+    for k, t in enumerate(T):
+        t[0, 3] = k
+    hist = {5: (1_800_000_000, T[0]), 6: (1_200_000_000, T[1]), 7: (2_300_000_000, T[2])}
+    ts, Ts = SlamSystem.keyframe_trajectory(SimpleNamespace(map=SimpleNamespace(history=hist)))
+    assert ts.tolist() == [1_200_000_000, 1_800_000_000, 2_300_000_000]
+    assert Ts[:, 0, 3].tolist() == [1.0, 0.0, 2.0]
+
+
 def test_a_start_turning_in_place_is_refined_in_motion():
     """The first second barely translates (turning in place): the system starts with zero velocity, then
     re-initialises in motion once structure from motion works, and the early frames take the new poses."""

@@ -142,7 +142,8 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
         lines.append(
             "  depth RMSE [m] on "
             f"{m.get('depth_metrics_keyframes', 0)} keyframes: sparse points {dm['sparse']['rmse']:.3f}, "
-            f"prior c=0 {dm['prior']['rmse']:.3f}, optimised code {dm['optimised']['rmse']:.3f}"
+            f"prior c=0 {dm['prior']['rmse']:.3f}, window code {dm['optimised']['rmse']:.3f}"
+            + (f", map code {dm['map']['rmse']:.3f}" if dm.get("map") else "")
         )
     if dense:
         names = ("dense_map.ply", "dense_map.png", "dense_mesh.ply", "keyframe_depth/")

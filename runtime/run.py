@@ -51,9 +51,9 @@ def run_sequence(
 
     ``dense``: a :class:`runtime.dense.DenseConfig` runs the tightly coupled dense system with the network in
     ``model_dir`` (default: the shipped model) and also writes ``dense_map.ply``, ``keyframe_depth/`` and the
-    dense metrics (depth metrics of the sparse points, the c = 0 prior and the optimised codes when the
-    sequence has ``mav0/depth0``); None: the sparse system. ``depth_source`` and ``probe``: diagnostics injected
-    into the dense mapper (:class:`runtime.dense.DenseMapper`; e.g. the rendered depth in place of the network,
+    dense metrics (depth metrics of the sparse points, the c = 0 prior, the window's codes and the map's codes
+    when the sequence has ``mav0/depth0``); None: the sparse system. ``depth_source`` and ``probe``: diagnostics
+    injected into the dense mapper (:class:`runtime.dense.DenseMapper`; e.g. the rendered depth in place of the network,
     :func:`runtime.diagnostics.oracle_depth.oracle_depth_source`). ``run_id``: the id of
     :func:`runtime.outputs.prepare_run_dir` when the caller prepared ``out_dir`` already (None: prepare it here).
 
@@ -117,6 +117,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
             "network": tm.get("dense_network", 0.0),  # on the background thread with DenseConfig.background
             "keyframe_inputs": tm.get("dense_keyframe", 0.0),  # undistorted image and sparse depth, tracking thread
             "waiting_for_network": tm.get("dense_wait", 0.0),  # tracking thread blocked on a network pass
+            "map_codes": tm.get("dense_map_codes", 0.0),  # the map's codes at fixed poses, network thread
             "factor_building": tm.get("dense_factors", 0.0),
             "optimisation": tm.get("optimize", 0.0) - tm.get("dense_factors", 0.0),
             "outputs_s": time.perf_counter() - t0,

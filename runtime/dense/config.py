@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 from runtime.config import dataclass_from_dict
 
-__all__ = ["SIGMA_PER_LAPLACE_B", "DepthFactorConfig", "DenseMapConfig", "DenseConfig"]
+__all__ = ["SIGMA_PER_LAPLACE_B", "DepthFactorConfig", "DenseMapConfig", "MapCodeConfig", "DenseConfig"]
 
 #: Standard deviation of a Laplace distribution per unit of its scale ``B`` (variance ``2 B^2``).
 SIGMA_PER_LAPLACE_B = math.sqrt(2.0)
@@ -105,6 +105,35 @@ class DenseMapConfig:
             raise ValueError(f"depth range [{self.min_depth}, {self.max_depth}] is empty")
 
 
+@dataclass(frozen=True)
+class MapCodeConfig:
+    """Settings of the map's code refinement at fixed poses (:mod:`runtime.dense.refine`).
+
+    Attributes:
+        neighbours: co-visible keyframes fitted jointly with a keyframe that leaves the window (0: off, the map
+            and the depth metrics take the window's code).
+        n_samples: Eq. 14 samples of each keyframe of the group (Sec. 5.2 sampler).
+        sigma_per_b: row sigma per unit of the predicted Laplace scale ``B`` (``sqrt(2)``: the network's own
+            likelihood; the window's factors use ``factors.sigma_per_b``).
+        iterations: Levenberg-Marquardt iterations (the decoder is linearised, so the fit is nearly linear: one
+            iteration gave the depth of eight on `handheld`, 13 groups at the true poses).
+    """
+
+    neighbours: int = 2
+    n_samples: int = 300
+    sigma_per_b: float = SIGMA_PER_LAPLACE_B
+    iterations: int = 2
+
+    def __post_init__(self) -> None:
+        if self.neighbours < 0 or self.n_samples < 1 or self.iterations < 0:
+            raise ValueError(
+                f"map_codes: neighbours={self.neighbours} and iterations={self.iterations} must be >= 0, "
+                f"n_samples={self.n_samples} >= 1"
+            )
+        if not self.sigma_per_b > 0:
+            raise ValueError(f"map_codes.sigma_per_b={self.sigma_per_b}: must be > 0")
+
+
 @dataclass
 class DenseConfig:
     """Settings of the dense (tightly coupled) system (:class:`runtime.dense.mapper.DenseMapper`).
@@ -140,6 +169,7 @@ class DenseConfig:
         seed: sampler seed (combined with the keyframe ids of a pair).
         factors: the depth factors' settings.
         map: the local dense map's settings.
+        map_codes: the codes of the map, refined at fixed poses when a keyframe leaves the window.
     """
 
     n_code_keyframes: int = 5
@@ -155,6 +185,7 @@ class DenseConfig:
     seed: int = 0
     factors: DepthFactorConfig = field(default_factory=DepthFactorConfig)
     map: DenseMapConfig = field(default_factory=DenseMapConfig)
+    map_codes: MapCodeConfig = field(default_factory=MapCodeConfig)
 
     def __post_init__(self) -> None:
         if self.n_code_keyframes < 1:
@@ -173,6 +204,8 @@ class DenseConfig:
             raise ValueError(f"factors={self.factors!r}: expected a DepthFactorConfig")
         if not isinstance(self.map, DenseMapConfig):
             raise ValueError(f"map={self.map!r}: expected a DenseMapConfig")
+        if not isinstance(self.map_codes, MapCodeConfig):
+            raise ValueError(f"map_codes={self.map_codes!r}: expected a MapCodeConfig")
 
     @classmethod
     def from_dict(cls, d: dict | None) -> DenseConfig:

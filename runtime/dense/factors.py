@@ -301,6 +301,7 @@ def consistency_residuals(
     min_depth: float = 0.05,
     edge_rel: float | None = None,
     jacobians: bool | None = None,
+    pose_jacobians: bool = True,
 ) -> ConsistencyResult:
     """Depth consistency residuals (Eq. 14) of samples ``P2`` of keyframe k2 against keyframe k1.
 
@@ -318,6 +319,8 @@ def consistency_residuals(
         min_depth: smallest valid depth [m] in k1.
         edge_rel: rows whose ``P1`` is on a depth edge of ``depth1`` are not valid; None: no test.
         jacobians: whether to compute the Jacobians; None: when both maps have code Jacobians.
+        pose_jacobians: with ``jacobians``, also the pose Jacobians (False: ``None`` in their place, for a fit
+            of the codes alone).
 
     Returns:
         :class:`ConsistencyResult`.
@@ -353,15 +356,22 @@ def consistency_residuals(
         jacobians = e1.J0 is not None and e2.J0 is not None
     jac = None
     if jacobians:
-        jac = _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, (lookup1, lookup2), (e1, e2))
+        jac = _consistency_jacobians(
+            T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, (lookup1, lookup2), (e1, e2), pose_jacobians
+        )
     return ConsistencyResult(r, valid, uv1, z1, dr_dd2, dz_dd2, jac)
 
 
-def _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, lookups, maps):
-    """``(J_x1, J_x2, J_c1, J_c2)`` of Eq. 14 from ``a = dr/dp_c1`` (S, 3) (:func:`consistency_residuals`)."""
+def _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, lookups, maps, poses=True):
+    """``(J_x1, J_x2, J_c1, J_c2)`` of Eq. 14 from ``a = dr/dp_c1`` (S, 3) (:func:`consistency_residuals`);
+    ``J_x1``, ``J_x2`` are None unless ``poses``."""
     lookup1, lookup2 = lookups
     e1, e2 = maps
     S = a.shape[0]
+    J_c1 = np.where(valid[:, None], e1.sample_jacobian(lookup1), 0.0)
+    J_c2 = dr_dd2[:, None] * e2.sample_jacobian(lookup2)
+    if not poses:
+        return None, None, J_c1, J_c2
     R_c_b = inv_T(T_b_c)[:3, :3]
     T_b1_w = inv_T(T_w_b1)
     T_b1_b2 = T_b1_w @ T_w_b2
@@ -374,8 +384,6 @@ def _consistency_jacobians(T_w_b1, T_w_b2, T_b_c, p_c2, a, valid, dr_dd2, lookup
     b2 = b1 @ T_b1_b2[:3, :3]  # dr/dp_b2
     # p_b1 = T_b1_b2 Exp(xi2) p_b2: d/domega = -R_b1_b2 [p_b2]_x, d/dv = R_b1_b2
     J_x2 = np.concatenate([np.cross(p_b2, b2), b2], 1)
-    J_c1 = np.where(valid[:, None], e1.sample_jacobian(lookup1), 0.0)
-    J_c2 = dr_dd2[:, None] * e2.sample_jacobian(lookup2)
     jac = (J_x1, J_x2, J_c1, J_c2)
     for Jk in jac:
         if Jk.shape[0] != S:

@@ -24,15 +24,19 @@
 * **Outputs** (:meth:`DenseMapper.finish`): ``dense_map.ply`` (the run's fused map,
   :class:`runtime.dense.fusion.VoxelMap`: every keyframe's decoded depth (those with
   ``min_sparse_points`` in the network input), uncertainty-filtered and weighted by
-  ``1 / B^2``, integrated once when it leaves the window with its final code and pose, and at the end for the
-  keyframes still in the window; points with normals and colours), ``dense_mesh.ply`` (with
+  ``1 / B^2``, integrated once when it leaves the window with its map code and final pose, and at the end for
+  the keyframes still in the window; points with normals and colours), ``dense_mesh.ply`` (with
   ``DenseMapConfig.mesh``: the same keyframes integrated on the network thread, right after the point map, into
   a :class:`runtime.dense.tsdf.TsdfVolume`, whose surface is extracted at the end; 69-116 ms a keyframe there,
   overlapping tracking, where integrating at the end would add 7-12 s to a 30 s run and keep every keyframe's
   depth until then), per-keyframe depth and
   uncertainty maps in ``keyframe_depth/``, and with ground-truth depth (``mav0/depth0``) the Table 2 metrics
-  of (a) the sparse map points, (b) the prior at c = 0, (c) the optimised code, on every keyframe that held a
-  code, each evaluated when the keyframe left the window (or at the end).
+  of (a) the sparse map points, (b) the prior at c = 0, (c) the optimised code (the window's), (d) the map code,
+  on every keyframe that held a code, each evaluated when the keyframe left the window (or at the end).
+* **Map codes** (:meth:`DenseMapper._refine`, ``DenseConfig.map_codes``): when a keyframe leaves the window (and
+  at the end), its code and those of its most co-visible keyframes are fitted jointly to Eq. 14 at the window's
+  poses (:mod:`runtime.dense.refine`, on the network thread); the keyframe keeps its fitted code as its map code
+  for the outputs above. The window's codes and poses never see it.
 
 This module never imports torch.
 """
@@ -61,6 +65,7 @@ from runtime.dense.map import (
     sparse_depth_image,
     write_keyframe_maps,
 )
+from runtime.dense.refine import refine_codes
 from runtime.dense.sampling import sample_consistency_pixels
 from runtime.dense.tsdf import TsdfVolume, write_mesh_ply
 from runtime.geometry import Camera, NetworkMapping, inv_T, project_pinhole
@@ -98,6 +103,7 @@ class _KfDense:
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
     n_sparse: int = -1  # map points in the network's sparse input (-1: the network takes none)
+    map_code: Future | None = None  # -> (C,) the code refined at fixed poses for the map (None: the window's)
 
     @property
     def provider(self) -> LinearizedDepth:
@@ -373,9 +379,47 @@ class DenseMapper:
         d = self.kfs.get(kf_id)
         if d is None:
             return
+        self._refine(backend, d)
         self._evaluate(backend, d)
         self._fuse(backend, d)
         del self.kfs[kf_id]
+
+    def _refine(self, backend, d: _KfDense) -> None:
+        """Submit the refinement of ``d``'s code for the map (:mod:`runtime.dense.refine`): jointly with its most
+        co-visible keyframes that have a scale, at the window's current poses and codes (taken now)."""
+        mc = self.cfg.map_codes
+        if mc.neighbours == 0 or not d.had_code or self._unscaled(d.n_sparse) or d.map_code is not None:
+            return
+        cand = backend.covisible_keyframes(d.kf_id, len(self.kfs))
+        group = [d] + [self.kfs[k] for k in cand if k in self.kfs and not self._unscaled(self.kfs[k].n_sparse)][
+            : mc.neighbours
+        ]
+        if len(group) < 2:
+            return
+        samples = []
+        for g in group:
+            rng = np.random.default_rng([self.cfg.seed, d.kf_id, g.kf_id])
+            s = sample_consistency_pixels(g.feat_uv, self.net.width, self.net.height, mc.n_samples, rng=rng, margin=2)
+            samples.append(s.uv)
+        poses = [np.asarray(backend.keyframe(g.kf_id).T_w_b, np.float64).copy() for g in group]
+        codes = [g.code.copy() for g in group]
+        d.map_code = self._submit(self._fit_map_code, [g.job for g in group], codes, poses, samples)
+
+    def _fit_map_code(self, jobs: list[Future], codes: list, poses: list, samples: list) -> np.ndarray:
+        t0 = time.perf_counter()
+        mc = self.cfg.map_codes
+        fcfg = dataclasses.replace(self.cfg.factors, sigma_per_b=mc.sigma_per_b)
+        providers = [j.result() for j in jobs]
+        fitted, _ = refine_codes(
+            providers, codes, poses, samples, self.T_b_c, self.K_net, fcfg, self.cfg.code_prior_sigma, mc.iterations
+        )
+        self.timers["dense_map_codes"] += time.perf_counter() - t0
+        return fitted[0]
+
+    @staticmethod
+    def _map_code_of(code: np.ndarray, map_code: Future | None) -> np.ndarray:
+        """The code the map uses: the refined one when there is one (network thread: it is done), else ``code``."""
+        return code if map_code is None else np.asarray(map_code.result(), np.float64)
 
     def _fuse(self, backend, d: _KfDense) -> None:
         """Integrate keyframe ``d`` into the fused map with its current code and pose, on the network thread (the
@@ -387,9 +431,9 @@ class DenseMapper:
             return
         T_w_c = np.asarray(backend.keyframe(d.kf_id).T_w_b, np.float64) @ self.T_b_c
 
-        def integrate(provider: LinearizedDepth, code: np.ndarray) -> None:
+        def integrate(provider: LinearizedDepth, code: np.ndarray, map_code: Future | None) -> None:
             t0 = time.perf_counter()
-            depth = np.asarray(provider.exact(code), np.float64)
+            depth = np.asarray(provider.exact(self._map_code_of(code, map_code)), np.float64)
             self.fused_map.integrate(d.kf_id, depth, T_w_c, self.net_cam, provider.uncertainty, d.image, self.cfg.map)
             t1 = time.perf_counter()
             self.timers["dense_fusion"] += t1 - t0
@@ -397,11 +441,12 @@ class DenseMapper:
                 self.tsdf.integrate(d.kf_id, depth, T_w_c, self.net_cam, provider.uncertainty, d.image, self.cfg.map)
                 self.timers["dense_tsdf"] += time.perf_counter() - t1
 
-        self._submit(integrate, d.provider, d.code.copy())
+        self._submit(integrate, d.provider, d.code.copy(), d.map_code)
 
     # ------------------------------------------------------------------ evaluation and outputs
     def final_depth(self, d: _KfDense) -> np.ndarray:
-        return self._exact(d, d.code)
+        """The keyframe's depth as the map has it (its map code when refined, else its window code)."""
+        return self._exact(d, self._map_code_of(d.code, d.map_code))
 
     def _evaluate(self, backend, d: _KfDense) -> None:
         if d.evaluated or not d.had_code or self.depth_gt is None:
@@ -410,15 +455,22 @@ class DenseMapper:
         uv, z = self._observed_points(backend, d.kf_id)
         uv_net = self.mapping.points_to_network(uv)
         self.per_kf_metrics[d.kf_id] = self._submit(
-            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z
+            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code
         )
 
     def _depth_errors(
-        self, provider: LinearizedDepth, code: np.ndarray, frame_idx: int, uv_net: np.ndarray, z: np.ndarray
+        self,
+        provider: LinearizedDepth,
+        code: np.ndarray,
+        frame_idx: int,
+        uv_net: np.ndarray,
+        z: np.ndarray,
+        map_code: Future | None = None,
     ) -> dict | None:
-        """Table 2 metrics of a keyframe's sparse points (network pixels ``uv_net``, depths ``z``), prior (c = 0)
-        and optimised code, against the ground truth of its frame (network thread: reading and resampling the
-        ground truth is evaluation, not tracking work); None without ground truth for the frame."""
+        """Table 2 metrics of a keyframe's sparse points (network pixels ``uv_net``, depths ``z``), prior (c = 0),
+        window code (``optimised``) and the map's code (``map``: refined at fixed poses, else the window's),
+        against the ground truth of its frame (network thread: reading and resampling the ground truth is
+        evaluation, not tracking work); None without ground truth for the frame."""
         gt = self.depth_gt(frame_idx)
         if gt is None:
             return None
@@ -428,6 +480,7 @@ class DenseMapper:
             "sparse": depth_metrics(sp, gt_net) if (sp > 0).any() and (gt_net[sp > 0] > 0).any() else None,
             "prior": depth_metrics(np.asarray(provider.exact(np.zeros_like(code)), np.float64), gt_net),
             "optimised": depth_metrics(np.asarray(provider.exact(code), np.float64), gt_net),
+            "map": depth_metrics(np.asarray(provider.exact(self._map_code_of(code, map_code)), np.float64), gt_net),
         }
 
     def finish(self, backend, out_dir: str | Path) -> dict:
@@ -436,6 +489,8 @@ class DenseMapper:
         metrics for ``metrics.json``."""
         out = Path(out_dir)
         active = [k for k in backend.window_ids() if k in self.kfs]
+        for k in active:
+            self._refine(backend, self.kfs[k])
         for k in active:
             self._evaluate(backend, self.kfs[k])
         depths, uncs = [], []
@@ -499,7 +554,7 @@ class DenseMapper:
         if per_kf:
             res["depth_metrics"] = {
                 stage: mean_metrics([m[stage] for m in per_kf if m[stage] is not None])
-                for stage in ("sparse", "prior", "optimised")
+                for stage in ("sparse", "prior", "optimised", "map")
             }
             res["depth_metrics_keyframes"] = len(per_kf)
             res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"

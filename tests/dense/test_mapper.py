@@ -108,13 +108,16 @@ def test_dense_run_completes_writes_outputs_and_keeps_the_ate_bounded(runs):
     saved = json.loads((out / "metrics.json").read_text())
     dm = saved["depth_metrics"]
     assert saved["depth_metrics_keyframes"] >= 5
-    for stage in ("sparse", "prior", "optimised"):
+    for stage in ("sparse", "prior", "optimised", "map"):
         assert np.isfinite(dm[stage]["rmse"]) and dm[stage]["n"] > 0
     assert dm["prior"]["coverage"] == pytest.approx(1.0) and dm["sparse"]["coverage"] < 0.1
     # the optimised codes must not make the depth worse than the c = 0 prior on this sequence
     assert dm["optimised"]["rmse"] < dm["prior"]["rmse"] + 0.01
+    # the map's codes were refined at fixed poses (runtime.dense.refine): another depth than the window's codes
+    assert dm["map"]["rmse"] != dm["optimised"]["rmse"] and dm["map"]["rmse"] < dm["prior"]["rmse"] + 0.01
     t = saved["timing_dense_ms_per_frame"]
     assert set(t) >= {"network", "factor_building", "optimisation"} and all(v >= 0 for v in t.values())
+    assert t["map_codes"] > 0
     assert saved["dense_mean_code_keyframes"] > 2 and saved["dense_mean_consis_rows"] > 0
     assert saved["dense_mean_geo_rows"] > 0
     assert saved["dense_optimisations_before_start"] > 0 and saved["dense_optimisations"] > 0  # 2 s waited
@@ -354,11 +357,14 @@ def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):
             "dense_settings.use_consistency=false",
             "dense_settings.save_maps=false",
             "dense_settings.start_after_s=0",  # 110 frames: the default wait would leave no dense optimisation
+            "dense_settings.map_codes.neighbours=0",  # the map takes the window's codes
         ]
     )
     text = capsys.readouterr().out
-    assert "dense_map.ply" in text and "optimised code" in text
+    assert "dense_map.ply" in text and "window code" in text and "map code" in text
     m = json.loads((out / "metrics.json").read_text())
+    assert m["depth_metrics"]["map"] == m["depth_metrics"]["optimised"]
+    assert m["timing_dense_ms_per_frame"]["map_codes"] == 0
     assert m["dense_config"]["use_consistency"] is False and m["dense_mean_consis_rows"] == 0
     assert (out / "dense_map.ply").is_file() and not (out / "keyframe_depth").exists()
     ts, _ = read_tum(out / "trajectory.txt")
@@ -412,9 +418,9 @@ def test_keyframes_below_min_sparse_points_stay_out_of_the_dense_map():
     m = DenseMapper.__new__(DenseMapper)
     m.cfg, m.T_b_c = DenseConfig(min_sparse_points=20), np.eye(4)
     fused = []
-    m._submit = lambda fn, provider, code: fused.append(provider)
+    m._submit = lambda fn, provider, code, map_code: fused.append(provider)
     for k, n in ((1, 0), (2, 19), (3, 20), (4, -1)):
-        d = SimpleNamespace(kf_id=k, fused=False, n_sparse=n, job=_done(k), code=np.zeros(8))
+        d = SimpleNamespace(kf_id=k, fused=False, n_sparse=n, job=_done(k), code=np.zeros(8), map_code=None)
         d.provider = k
         m._fuse(Backend(), d)
         assert d.fused  # never tried again

@@ -406,15 +406,22 @@ class DenseMapper:
         d.map_code = self._submit(self._fit_map_code, [g.job for g in group], codes, poses, samples)
 
     def _fit_map_code(self, jobs: list[Future], codes: list, poses: list, samples: list) -> np.ndarray:
+        """The first keyframe's map code (network thread); its window code when the fit fails (logged)."""
         t0 = time.perf_counter()
         mc = self.cfg.map_codes
         fcfg = dataclasses.replace(self.cfg.factors, sigma_per_b=mc.sigma_per_b)
         providers = [j.result() for j in jobs]
-        fitted, _ = refine_codes(
-            providers, codes, poses, samples, self.T_b_c, self.K_net, fcfg, self.cfg.code_prior_sigma, mc.iterations
-        )
+        try:
+            fitted, _ = refine_codes(
+                providers, codes, poses, samples, self.T_b_c, self.K_net, fcfg, self.cfg.code_prior_sigma,
+                mc.iterations,
+            )  # fmt: skip
+            code = fitted[0]
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError) as e:
+            log.warning("dense: map code fit failed (%s); the map keeps the window's code", e)
+            code = np.asarray(codes[0], np.float64)
         self.timers["dense_map_codes"] += time.perf_counter() - t0
-        return fitted[0]
+        return code
 
     @staticmethod
     def _map_code_of(code: np.ndarray, map_code: Future | None) -> np.ndarray:

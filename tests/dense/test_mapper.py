@@ -425,3 +425,20 @@ def test_keyframes_below_min_sparse_points_stay_out_of_the_dense_map():
         m._fuse(Backend(), d)
         assert d.fused  # never tried again
     assert fused == [3, 4]
+
+
+def test_a_failed_map_code_fit_leaves_the_window_code(monkeypatch, caplog):
+    """A fit that raises (a singular system, a bad value) must not stop the run: the map keeps the window's code."""
+    import runtime.dense.mapper as mapper_mod
+
+    def boom(*a, **k):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(mapper_mod, "refine_codes", boom)
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg, m.T_b_c, m.K_net, m.timers = DenseConfig(), np.eye(4), (100.0, 100.0, 32.0, 32.0), defaultdict(float)
+    code = np.arange(8, dtype=np.float64) * 0.1
+    with caplog.at_level("WARNING"):
+        out = m._fit_map_code([_done(1), _done(2)], [code, np.zeros(8)], [np.eye(4)] * 2, [np.zeros((4, 2))] * 2)
+    np.testing.assert_array_equal(out, code)
+    assert "map code fit failed" in caplog.text and m.timers["dense_map_codes"] >= 0

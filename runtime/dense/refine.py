@@ -1,9 +1,9 @@
 """The depth codes of the map, refined at fixed poses when a keyframe leaves the window (Eq. 14, Sec. 5.2).
 
-The window's Eq. 14 factors serve the poses. Their rows are weighted 16x below the network's own Laplace
-likelihood (:class:`runtime.dense.config.DepthFactorConfig`), because stronger depth factors pulled the
-trajectory, and they pair only the newest code keyframe with the others. The codes they leave move a
-keyframe's depth by under 1 % (``benchmarks/code_oracle.py``).
+The window's Eq. 14 factors serve the poses. Their row sigmas are 16x the network's own Laplace sigma
+(:class:`runtime.dense.config.DepthFactorConfig`), because stronger depth factors pulled the trajectory, and they
+pair only the newest code keyframe with the others. The codes they leave move a keyframe's depth by under 1 %
+(the depth metrics of ``metrics.json``; ``reports/ablations.md``, "The map's depth codes").
 
 The map can ask more of the codes, because here the poses are given. When a keyframe leaves the window,
 :func:`refine_codes` fits the codes of the keyframe and of its most co-visible keyframes jointly. The fit uses

@@ -170,16 +170,13 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
 
 # ------------------------------------------------------------------------------------------------ real
 def eval_real(folder: Path, args) -> dict:
+    from benchmarks.common import posed_gs_frames
     from runtime.densify import interpolate_sparse
-    from runtime.geometry import Camera
     from runtime.io.rgbd_frames import RgbdFolder
     from runtime.network import DepthNetwork, default_model_dir
-    from train.augment import FrameTransform
-    from train.sparse import SparseConfig
 
     frames = RgbdFolder(folder, args.frames)
     net = DepthNetwork(args.model or default_model_dir())
-    tf = FrameTransform(net.height, net.width, net.modality, False, None, SparseConfig())
     cfg = DenseMapConfig()
     maps = {k: VoxelMap(cfg.voxel) for k in ("network", "interp", "gt")}
     maps["network_unweighted"] = VoxelMap(cfg.voxel, min_uncertainty=1e3)  # every B clamped to 1 km: equal weights
@@ -190,33 +187,24 @@ def eval_real(folder: Path, args) -> dict:
     t_tsdf, gt_pts = 0.0, []
     code = np.zeros(net.code_dim, np.float32)
     t0 = time.perf_counter()
-    for i in range(len(frames)):
-        rgb, depth = frames[i]
-        T_w_c = frames.pose(i)
-        if T_w_c is None:
-            raise ValueError(f"{folder}: frame {i} has no pose file")
+    for f in posed_gs_frames(frames, net):  # the G-S input of dit-eval (seed 0, epoch 0)
+        i, depth, T_w_c, cam, mapping, net_cam, sparse, kd = (
+            f.index, f.depth, f.T_w_c, f.cam, f.mapping, f.net_cam, f.sparse, f.kd
+        )  # fmt: skip
         H, W = depth.shape
-        K = frames.K
-        cam = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], W, H)
-        mapping = tf.mapping((H, W))
-        net_cam = mapping.camera(cam)
-        x = tf(rgb, depth, np.random.default_rng([0, 0, i]))  # the G-S input of dit-eval (seed 0, epoch 0)
-        img = x["image"][0] if not net.modality.startswith("rgb") else x["image"][:3].transpose(1, 2, 0)
-        sparse = x["image"][-1]
-        kd = net.prior(img, sparse if net.uses_sparse else None)
-        colour = mapping.image_to_network(rgb)
+        colour = mapping.image_to_network(f.rgb)
         d_net = kd.depth(code)
         maps["network"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, cfg)
         maps["network_unweighted"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, cfg)
         maps["network_unfiltered"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, no_filter)
         maps["interp"].integrate(i, interpolate_sparse(sparse), T_w_c, net_cam, None, colour, cfg)
-        maps["gt"].integrate(i, x["depth"][0], T_w_c, net_cam, None, colour, cfg)
+        maps["gt"].integrate(i, f.gt, T_w_c, net_cam, None, colour, cfg)
         t1 = time.perf_counter()
         tsdfs["network"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, cfg)
         t_tsdf += time.perf_counter() - t1
         tsdfs["network_unweighted"].integrate(i, d_net, T_w_c, net_cam, kd.uncertainty, colour, cfg)
         tsdfs["interp"].integrate(i, interpolate_sparse(sparse), T_w_c, net_cam, None, colour, cfg)
-        tsdfs["gt"].integrate(i, x["depth"][0], T_w_c, net_cam, None, colour, cfg)
+        tsdfs["gt"].integrate(i, f.gt, T_w_c, net_cam, None, colour, cfg)
         # ground truth: the full-resolution depth inside the network's crop
         uv_all = np.stack(np.meshgrid(np.arange(W), np.arange(H)), -1).reshape(-1, 2).astype(np.float64)
         uvn = mapping.points_to_network(uv_all)

@@ -652,3 +652,59 @@ def gs_protocol_sets(net, real: str | None, sim_val: int, limit: int | None = No
         }
     )
     return protocol_sets(cfg, net.modality, net.height, net.width)
+
+
+@dataclass
+class PosedGsFrame:
+    """One frame of an ``rgbd_real`` folder at its recorded pose, with the paper's G-S input (:func:`posed_gs_frames`).
+
+    Attributes:
+        index: the frame's index in the folder.
+        rgb: (H, W, 3) colour image; depth: (H, W) full-resolution depth [m] (0 = invalid).
+        T_w_c: (4, 4) the recorded camera pose.
+        cam: the full-resolution pinhole camera; mapping: its :class:`runtime.geometry.NetworkMapping`;
+            net_cam: the network camera.
+        gt: (h, w) true depth at network resolution; sparse: (h, w) the G-S sparse input (125 FAST points).
+        kd: the network's prior (:class:`runtime.network.KeyframeDepth`) on that input.
+    """
+
+    index: int
+    rgb: np.ndarray
+    depth: np.ndarray
+    T_w_c: np.ndarray
+    cam: object
+    mapping: object
+    net_cam: object
+    gt: np.ndarray
+    sparse: np.ndarray
+    kd: object
+
+
+def posed_gs_frames(frames, net):
+    """Yield :class:`PosedGsFrame` for every frame of ``frames`` (a :class:`runtime.io.rgbd_frames.RgbdFolder`),
+    its input built as ``dit-eval depth`` builds it (seed 0, epoch 0) for the exported model ``net``.
+
+    Raises:
+        ValueError: a frame has no pose file.
+    """
+    from runtime.geometry import Camera
+    from train.augment import FrameTransform
+    from train.sparse import SparseConfig
+
+    tf = FrameTransform(net.height, net.width, net.modality, False, None, SparseConfig())
+    K = frames.K
+    for i in range(len(frames)):
+        rgb, depth = frames[i]
+        T_w_c = frames.pose(i)
+        if T_w_c is None:
+            raise ValueError(f"{frames.root}: frame {i} has no pose file")
+        H, W = depth.shape
+        cam = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], W, H)
+        mapping = tf.mapping((H, W))
+        x = tf(rgb, depth, np.random.default_rng([0, 0, i]))
+        img = x["image"][0] if not net.modality.startswith("rgb") else x["image"][:3].transpose(1, 2, 0)
+        sparse = np.asarray(x["image"][-1], np.float32)
+        kd = net.prior(img, sparse if net.uses_sparse else None)
+        yield PosedGsFrame(
+            i, rgb, depth, np.asarray(T_w_c, np.float64), cam, mapping, mapping.camera(cam), x["depth"][0], sparse, kd
+        )

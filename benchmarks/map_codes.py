@@ -24,36 +24,23 @@ import numpy as np
 
 
 def folder_frames(folder: Path, net, limit: int | None = None) -> list[dict]:
-    """The G-S input of every frame with a pose: its prior (linearised at c = 0), true depth, sparse points,
-    camera pose ``T_w_c`` and network intrinsics."""
+    """The G-S input of every frame with a pose (:func:`benchmarks.common.posed_gs_frames`): its prior (linearised
+    at c = 0), true depth, sparse points, camera pose ``T_w_c`` and network intrinsics."""
+    from benchmarks.common import posed_gs_frames
     from runtime.dense.linearized import LinearizedDepth
-    from runtime.geometry import Camera
     from runtime.io.rgbd_frames import RgbdFolder
-    from train.augment import FrameTransform
-    from train.sparse import SparseConfig
 
-    frames = RgbdFolder(folder, limit)
-    tf = FrameTransform(net.height, net.width, net.modality, False, None, SparseConfig())
     out = []
-    for i in range(len(frames)):
-        rgb, depth = frames[i]
-        T_w_c = frames.pose(i)
-        if T_w_c is None:
-            raise ValueError(f"{folder}: frame {i} has no pose file")
-        K = frames.K
-        cam = Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], depth.shape[1], depth.shape[0])
-        x = tf(rgb, depth, np.random.default_rng([0, 0, i]))  # the G-S input of dit-eval (seed 0, epoch 0)
-        img = x["image"][0] if not net.modality.startswith("rgb") else x["image"][:3].transpose(1, 2, 0)
-        sparse = np.asarray(x["image"][-1], np.float32)
-        provider = LinearizedDepth(net.prior(img, sparse if net.uses_sparse else None))
+    for f in posed_gs_frames(RgbdFolder(folder, limit), net):
+        provider = LinearizedDepth(f.kd)
         provider.relinearize(np.zeros(net.code_dim))
         out.append(
             {
                 "provider": provider,
-                "gt": np.asarray(x["depth"][0], np.float64),
-                "sparse": sparse,
-                "T_w_c": np.asarray(T_w_c, np.float64),
-                "K": tf.mapping(depth.shape).camera(cam).intrinsics,
+                "gt": np.asarray(f.gt, np.float64),
+                "sparse": f.sparse,
+                "T_w_c": f.T_w_c,
+                "K": f.net_cam.intrinsics,
             }
         )
     return out

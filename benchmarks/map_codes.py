@@ -62,9 +62,11 @@ def group_of(i: int, n: int, neighbours: int, gap: int) -> list[int]:
 
 
 def _metrics(pred: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
-    v = gt > 0
-    e = pred[v] - gt[v]
-    return float(np.sqrt(np.mean(e**2))), float(np.mean(np.abs(e) / gt[v]))
+    """RMSE and AbsRel of one image, as ``metrics.json`` and ``dit-slam`` compute them."""
+    from runtime.dense.map import depth_metrics
+
+    m = depth_metrics(pred, gt)
+    return m["rmse"], m["abs_rel"]
 
 
 def evaluate(frames: list[dict], gap: int, cfg=None, seed: int = 0) -> dict:
@@ -72,7 +74,7 @@ def evaluate(frames: list[dict], gap: int, cfg=None, seed: int = 0) -> dict:
     from runtime.dense.config import DenseConfig
     from runtime.dense.refine import refine_codes
     from runtime.dense.sampling import sample_consistency_pixels
-    from train.sparse import interpolate_sparse
+    from runtime.densify import interpolate_sparse
 
     cfg = cfg or DenseConfig()
     mc = cfg.map_codes

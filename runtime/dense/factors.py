@@ -59,6 +59,7 @@ __all__ = [
     "geometric_residuals",
     "make_geometric_depth_factors",
     "ConsistencyResult",
+    "pixel_rays",
     "consistency_residuals",
     "consistency_sigmas",
     "make_consistency_factor",
@@ -287,6 +288,17 @@ class ConsistencyResult:
     jacobians: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
 
 
+def pixel_rays(uv: np.ndarray, K: Sequence[float]) -> np.ndarray:
+    """(S, 3) rays ``K^-1 [u, v, 1]`` (z = 1) of network pixels ``uv`` (S, 2), for :func:`consistency_residuals`.
+
+    >>> pixel_rays(np.array([[12.0, 7.0]]), (10.0, 5.0, 2.0, 2.0)).tolist()
+    [[1.0, 1.0, 1.0]]
+    """
+    fx, fy, cx, cy = (float(k) for k in K)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    return np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(uv.shape[0])], -1)
+
+
 def consistency_residuals(
     T_w_b1: np.ndarray,
     T_w_b2: np.ndarray,
@@ -455,7 +467,7 @@ def make_consistency_factor(
     if uv2.shape[0] == 0:
         raise ValueError("no consistency sample inside the image (and off depth edges)")
     lookup2 = Bilinear(uv2, shape)
-    rays2 = np.stack([(uv2[:, 0] - cx) / fx, (uv2[:, 1] - cy) / fy, np.ones(uv2.shape[0])], -1)
+    rays2 = pixel_rays(uv2, K)
     ekw = {"min_depth": cfg.min_depth, "edge_rel": cfg.edge_rel}
     res0 = consistency_residuals(T1, T2, T_b_c, K, lookup2, rays2, *depths0, jacobians=False, **ekw)
     sigmas = consistency_sigmas(res0, B1, lookup2.sample(B2), cfg)

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from runtime.dense.config import DepthFactorConfig
-from runtime.dense.factors import consistency_residuals, consistency_sigmas
+from runtime.dense.factors import consistency_residuals, consistency_sigmas, pixel_rays
 from runtime.dense.lookup import Bilinear
 
 __all__ = ["refine_codes"]
@@ -81,13 +81,12 @@ def refine_codes(
         raise ValueError(f"refine_codes: code_prior_sigma={code_prior_sigma} must be > 0, iterations >= 0")
     C = int(np.asarray(codes[0]).size)
     shape = np.asarray(providers[0].uncertainty).shape[:2]
-    fx, fy, cx, cy = (float(k) for k in K)
     lookups, rays, b_at = [], [], []
     for p, uv in zip(providers, samples_uv, strict=True):
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         lk = Bilinear(uv, shape)
         lookups.append(lk)
-        rays.append(np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], -1))
+        rays.append(pixel_rays(uv, K))
         b_at.append(lk.sample(np.asarray(p.uncertainty, np.float64)))
     pairs = [(a, b) for a in range(n) for b in range(n) if a != b]  # samples of b warped into a
     k_h = cfg.consis_huber_k

@@ -144,6 +144,8 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"{m.get('depth_metrics_keyframes', 0)} keyframes: sparse points {dm['sparse']['rmse']:.3f}, "
             f"prior c=0 {dm['prior']['rmse']:.3f}, window code {dm['optimised']['rmse']:.3f}"
             + (f", map code {dm['map']['rmse']:.3f}" if dm.get("map") else "")
+            + (f"; references: interpolated input {dm['interpolated']['rmse']:.3f}" if dm.get("interpolated") else "")
+            + (f", median of the true depth {dm['median']['rmse']:.3f}" if dm.get("median") else "")
         )
     if dense:
         names = ("dense_map.ply", "dense_map.png", "dense_mesh.ply", "keyframe_depth/")

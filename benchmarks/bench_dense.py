@@ -15,7 +15,9 @@ Per run: ATE (SE3 RMSE, m), FPS (frames / wall time of the whole run, one proces
 and for the dense runs the depth metrics of Table 2 on the keyframes that held a code, against the rendered
 ground truth (``mav0/depth0``) at network resolution: (a) the sparse map points, (b) the network prior at
 c = 0, (c) the window's optimised code, (d) the map's code (refined at fixed poses, ``runtime.dense.refine``; the
-depth the dense map is made of). The machine is shared and noisy: compare FPS as ratios within one invocation.
+depth the dense map is made of), and the reference (i): the network's own sparse input interpolated
+(``runtime.densify.interpolate_sparse``), which a network with sparse input has to beat. The machine is shared
+and noisy: compare FPS as ratios within one invocation.
 The bars: per dense mode and sequence, the paired ATE difference against sparse over the seeds (mean and standard
 error; frames/s as the ratio of runs of one seed, which follow each other), frames/s >= 20, and (c) and (d) below
 (b).
@@ -157,7 +159,8 @@ def named_sequence(path: str) -> tuple[str, int, Path]:
 
 def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
     """One row of the table from a run's ``metrics.json`` dict ``m``: ATE [m], FPS, keyframes, decoder runs, the
-    drift found at a relocalisation [m] and the depth metrics of (a) sparse points, (b) prior, (c) optimised."""
+    drift found at a relocalisation [m] and the depth metrics of (a) sparse points, (b) prior, (c) optimised,
+    (d) the map's codes and (i) the reference: the network's sparse input interpolated."""
     dm = m.get("depth_metrics") or {}
     r = {
         "preset": preset,
@@ -171,7 +174,7 @@ def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
         # dead-reckoning drift found by the relocalisation after a loss of visual tracking (whitewall)
         "reloc_drift_m": max((r["drift_m"] for r in m.get("relocalisations") or []), default=float("nan")),
     }
-    for stage, key in (("sparse", "a"), ("prior", "b"), ("optimised", "c"), ("map", "d")):
+    for stage, key in (("sparse", "a"), ("prior", "b"), ("optimised", "c"), ("map", "d"), ("interpolated", "i")):
         s = dm.get(stage) or {}
         r[f"rmse_{key}"] = s.get("rmse", float("nan"))
         r[f"absrel_{key}"] = s.get("abs_rel", float("nan"))
@@ -179,13 +182,17 @@ def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
     return r
 
 
-COLS = ("ate", "fps", "rmse_a", "rmse_b", "rmse_c", "rmse_d", "absrel_b", "absrel_c", "delta1_b", "delta1_c")
+COLS = (
+    *("ate", "fps", "rmse_a", "rmse_b", "rmse_c", "rmse_d", "rmse_i"),
+    *("absrel_b", "absrel_c", "absrel_i", "delta1_b", "delta1_c"),
+)
 
 
 def fmt_table(rows: list[dict], per_run: bool = True) -> str:
     head = (
         f"{'preset':10s} {'mode':14s} {'seeds':>5s} {'ATE m':>8s} {'FPS':>6s} {'RMSE(a)':>8s} "
-        f"{'RMSE(b)':>8s} {'RMSE(c)':>8s} {'RMSE(d)':>8s} {'AbsRel b':>8s} {'AbsRel c':>8s} {'d1 b':>6s} {'d1 c':>6s}"
+        f"{'RMSE(b)':>8s} {'RMSE(c)':>8s} {'RMSE(d)':>8s} {'RMSE(i)':>8s} {'AbsRel b':>8s} {'AbsRel c':>8s} "
+        f"{'AbsRel i':>8s} {'d1 b':>6s} {'d1 c':>6s}"
     )
     lines = [head, "-" * len(head)]
     groups = {}
@@ -199,7 +206,7 @@ def fmt_table(rows: list[dict], per_run: bool = True) -> str:
         lines.append(
             f"{preset:10s} {mode:14s} {len(rs):5d} {mean['ate']:8.4f} {mean['fps']:6.1f} "
             f"{mean['rmse_a']:8.3f} {mean['rmse_b']:8.3f} {mean['rmse_c']:8.3f} {mean['rmse_d']:8.3f} "
-            f"{mean['absrel_b']:8.3f} {mean['absrel_c']:8.3f} "
+            f"{mean['rmse_i']:8.3f} {mean['absrel_b']:8.3f} {mean['absrel_c']:8.3f} {mean['absrel_i']:8.3f} "
             f"{mean['delta1_b']:6.3f} {mean['delta1_c']:6.3f}"
         )
     if per_run:
@@ -207,8 +214,8 @@ def fmt_table(rows: list[dict], per_run: bool = True) -> str:
         for r in rows:
             lines.append(
                 f"  {r['preset']:10s} {r['mode']:14s} seed {r['seed']}: ATE {r['ate']:.4f} m, "
-                f"{r['fps']:.1f} FPS, RMSE a/b/c/d {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f}/"
-                f"{r['rmse_d']:.3f} m, "
+                f"{r['fps']:.1f} FPS, RMSE a/b/c/d/i {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f}/"
+                f"{r['rmse_d']:.3f}/{r['rmse_i']:.3f} m, "
                 f"decoder runs {r['decoder_calls']}, drift at relocalisation {r['reloc_drift_m']:.3f} m"
             )
     return "\n".join(lines)
@@ -331,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         "model": model,
         "columns": (
             "ATE SE3 RMSE [m]; depth RMSE [m] of (a) sparse map points, (b) prior c=0, (c) optimised code (the "
-            "window's), (d) map code (refined at fixed poses)"
+            "window's), (d) map code (refined at fixed poses), (i) the network's sparse input interpolated (reference)"
         ),
         "complete": False,
         "rows": rows,
@@ -353,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
             r = rows[-1]
             print(
                 f"bench_dense: {preset} seed {seed} {mode}: ATE {r['ate']:.4f} m, {r['fps']:.1f} FPS, "
-                f"RMSE a/b/c {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f} "
+                f"RMSE a/b/c/i {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f}/{r['rmse_i']:.3f} "
                 f"({time.perf_counter() - t0:.0f} s)",
                 flush=True,
             )

@@ -470,6 +470,7 @@ def _table3() -> list[str]:
         groups: dict[tuple[str, str], list[dict]] = {}
         for r in rows:
             groups.setdefault((r["preset"], r["mode"]), []).append(r)
+        stages = "abc" + ("i" if any("rmse_i" in r for r in rows) else "")  # (i): results since 2026-11-28
         body = []
         for (preset, mode), rs in groups.items():
             body.append(
@@ -481,7 +482,7 @@ def _table3() -> list[str]:
                     " / ".join(_num(r["ate"], 1, 1e3) for r in rs),
                     _mean_std([r["fps"] for r in rs], 0),
                 ]
-                + [_mean_std([r.get(f"rmse_{k}") for r in rs], 3) for k in "abc"]
+                + [_mean_std([r.get(f"rmse_{k}") for r in rs], 3) for k in stages]
             )
         spec = [
             ("presets", "--presets"),
@@ -511,7 +512,9 @@ def _table3() -> list[str]:
         )
         out += [
             f"{where}, {_dense_model(d)}; mean ± std over seeds (ATE: SE(3)-aligned RMSE; depth "
-            "RMSE on the keyframes that held a code: (a) sparse map points, (b) prior c = 0, (c) optimised code):",
+            "RMSE on the keyframes that held a code: (a) sparse map points, (b) prior c = 0, (c) optimised code"
+            + (", (i) the network's sparse input interpolated, the reference it has to beat" if "i" in stages else "")
+            + "):",
             "",
             _table(
                 [
@@ -521,9 +524,7 @@ def _table3() -> list[str]:
                     "ATE [mm]",
                     "ATE per seed [mm]",
                     "FPS",
-                    "RMSE (a) [m]",
-                    "RMSE (b) [m]",
-                    "RMSE (c) [m]",
+                    *(f"RMSE ({k}) [m]" for k in stages),
                 ],
                 body,
             ),

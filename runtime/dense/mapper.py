@@ -103,6 +103,7 @@ class _KfDense:
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
     n_sparse: int = -1  # map points in the network's sparse input (-1: the network takes none)
+    sparse: np.ndarray | None = None  # (h, w) that input [m], kept only to score its interpolation against GT
     map_code: Future | None = None  # -> (C,) the code refined at fixed poses for the map (None: the window's)
 
     @property
@@ -194,7 +195,10 @@ class DenseMapper:
             n_sparse = int((sparse > 0).sum())
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
         job = self._submit(self._network_pass, img_net, sparse, frame_idx)
-        self.kfs[kf_id] = _KfDense(kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse)
+        kept = sparse if self.depth_gt is not None else None  # the interpolation's row of the depth metrics
+        self.kfs[kf_id] = _KfDense(
+            kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse, sparse=kept
+        )
         self.stats.n_sparse.append(n_sparse)
         self.timers["dense_keyframe"] += time.perf_counter() - t0
 
@@ -462,7 +466,7 @@ class DenseMapper:
         uv, z = self._observed_points(backend, d.kf_id)
         uv_net = self.mapping.points_to_network(uv)
         self.per_kf_metrics[d.kf_id] = self._submit(
-            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code
+            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, d.sparse
         )
 
     def _depth_errors(
@@ -473,18 +477,30 @@ class DenseMapper:
         uv_net: np.ndarray,
         z: np.ndarray,
         map_code: Future | None = None,
+        sparse_in: np.ndarray | None = None,
     ) -> dict | None:
         """Table 2 metrics of a keyframe's sparse points (network pixels ``uv_net``, depths ``z``), prior (c = 0),
         window code (``optimised``) and the map's code (``map``: refined at fixed poses, else the window's),
         against the ground truth of its frame (network thread: reading and resampling the ground truth is
-        evaluation, not tracking work); None without ground truth for the frame."""
+        evaluation, not tracking work); None without ground truth for the frame.
+
+        Next to them, the two references every depth table here carries: ``interpolated``, the network's own
+        sparse input ``sparse_in`` interpolated (:func:`runtime.densify.interpolate_sparse`; None when the
+        network took no point), which a network with sparse input has to beat, and ``median``, the constant
+        image at the median of the true depth (an oracle of the scale alone)."""
+        from runtime.densify import interpolate_sparse
+
         gt = self.depth_gt(frame_idx)
         if gt is None:
             return None
         gt_net = gt_depth_to_network(gt, self.camera, self.mapping)
         sp = sparse_depth_image(uv_net, z, gt_net.shape)
+        valid = gt_net[np.isfinite(gt_net) & (gt_net > 0)]
+        taken = sparse_in is not None and bool((sparse_in > 0).any())
         return {
             "sparse": depth_metrics(sp, gt_net) if (sp > 0).any() and (gt_net[sp > 0] > 0).any() else None,
+            "interpolated": depth_metrics(interpolate_sparse(sparse_in), gt_net) if taken else None,
+            "median": depth_metrics(np.full(gt_net.shape, np.median(valid)), gt_net) if valid.size else None,
             "prior": depth_metrics(np.asarray(provider.exact(np.zeros_like(code)), np.float64), gt_net),
             "optimised": depth_metrics(np.asarray(provider.exact(code), np.float64), gt_net),
             "map": depth_metrics(np.asarray(provider.exact(self._map_code_of(code, map_code)), np.float64), gt_net),
@@ -561,11 +577,17 @@ class DenseMapper:
         if per_kf:
             res["depth_metrics"] = {
                 stage: mean_metrics([m[stage] for m in per_kf if m[stage] is not None])
-                for stage in ("sparse", "prior", "optimised", "map")
+                for stage in DEPTH_STAGES
+                if stage not in REFERENCE_STAGES or any(m[stage] is not None for m in per_kf)
             }
             res["depth_metrics_keyframes"] = len(per_kf)
             res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"
         return res
+
+
+#: The rows of ``depth_metrics`` in ``metrics.json``: the estimates, then the references (see ``_depth_errors``).
+REFERENCE_STAGES = ("interpolated", "median")  # left out when no keyframe has them (a network without sparse input)
+DEPTH_STAGES = ("sparse", "prior", "optimised", "map", *REFERENCE_STAGES)
 
 
 def _quartiles(values: list) -> list[float] | None:

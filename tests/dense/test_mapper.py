@@ -108,8 +108,10 @@ def test_dense_run_completes_writes_outputs_and_keeps_the_ate_bounded(runs):
     saved = json.loads((out / "metrics.json").read_text())
     dm = saved["depth_metrics"]
     assert saved["depth_metrics_keyframes"] >= 5
-    for stage in ("sparse", "prior", "optimised", "map"):
+    for stage in ("sparse", "prior", "optimised", "map", "interpolated", "median"):
         assert np.isfinite(dm[stage]["rmse"]) and dm[stage]["n"] > 0
+    # the references score the same keyframes as the network (every keyframe with a code took map points)
+    assert dm["interpolated"]["images"] == dm["median"]["images"] == dm["prior"]["images"]
     assert dm["prior"]["coverage"] == pytest.approx(1.0) and dm["sparse"]["coverage"] < 0.1
     # the optimised codes must not make the depth worse than the c = 0 prior on this sequence
     assert dm["optimised"]["rmse"] < dm["prior"]["rmse"] + 0.01
@@ -362,6 +364,7 @@ def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):
     )
     text = capsys.readouterr().out
     assert "dense_map.ply" in text and "window code" in text and "map code" in text
+    assert "interpolated input" in text and "median of the true depth" in text
     m = json.loads((out / "metrics.json").read_text())
     assert m["depth_metrics"]["map"] == m["depth_metrics"]["optimised"]
     assert m["timing_dense_ms_per_frame"]["map_codes"] == 0
@@ -442,3 +445,31 @@ def test_a_failed_map_code_fit_leaves_the_window_code(monkeypatch, caplog):
         out = m._fit_map_code([_done(1), _done(2)], [code, np.zeros(8)], [np.eye(4)] * 2, [np.zeros((4, 2))] * 2)
     np.testing.assert_array_equal(out, code)
     assert "map code fit failed" in caplog.text and m.timers["dense_map_codes"] >= 0
+
+
+def test_depth_metrics_carry_the_interpolated_input_and_the_median_as_references(monkeypatch):
+    """Beside the network's rows, each keyframe's depth metrics score the network's own sparse input interpolated
+    and the constant image at the true depth's median. Known answers: a depth linear in the pixels, sampled at
+    the image's four corners, is reproduced exactly by the interpolation over their triangles; the median row
+    is the metrics of that constant."""
+    import runtime.dense.mapper as mapper_mod
+    from runtime.dense.map import depth_metrics
+
+    monkeypatch.setattr(mapper_mod, "gt_depth_to_network", lambda gt, camera, mapping: gt)
+    v, u = np.mgrid[0:16, 0:24].astype(np.float64)
+    gt = 2.0 + 0.1 * u + 0.05 * v  # linear in the pixels: reproduced by the interpolation of the corners
+    sparse_in = np.zeros_like(gt)
+    for r, c in ((0, 0), (0, 23), (15, 0), (15, 23)):
+        sparse_in[r, c] = gt[r, c]
+    m = DenseMapper.__new__(DenseMapper)
+    m.depth_gt, m.camera, m.mapping = (lambda idx: gt), None, None
+    provider = SimpleNamespace(exact=lambda code: np.full(gt.shape, 3.0) + float(np.sum(code)))
+    uv, z = np.array([[0.0, 0.0], [23.0, 15.0]]), np.array([gt[0, 0], gt[15, 23]])
+    out = m._depth_errors(provider, np.zeros(8), 0, uv, z, None, sparse_in)
+    assert out["interpolated"]["rmse"] < 1e-6 and out["interpolated"]["coverage"] == 1.0
+    assert out["prior"]["rmse"] > 0.3  # the constant 3 m: far from the plane
+    assert out["median"] == depth_metrics(np.full(gt.shape, np.median(gt)), gt)
+    assert out["median"]["rmse"] < out["prior"]["rmse"]
+    # no sparse input (a network that takes none, or no map point in view): no interpolation row
+    assert m._depth_errors(provider, np.zeros(8), 0, uv, z, None, None)["interpolated"] is None
+    assert m._depth_errors(provider, np.zeros(8), 0, uv, z, None, np.zeros_like(gt))["interpolated"] is None

@@ -103,7 +103,7 @@ class _KfDense:
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
     n_sparse: int = -1  # map points in the network's sparse input (-1: the network takes none)
-    sparse: np.ndarray | None = None  # (h, w) that input [m], kept only to score its interpolation against GT
+    sparse: tuple | None = None  # that input's samples (:func:`_samples`), kept to score its interpolation against GT
     map_code: Future | None = None  # -> (C,) the code refined at fixed poses for the map (None: the window's)
 
     @property
@@ -195,7 +195,7 @@ class DenseMapper:
             n_sparse = int((sparse > 0).sum())
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
         job = self._submit(self._network_pass, img_net, sparse, frame_idx)
-        kept = sparse if self.depth_gt is not None else None  # the interpolation's row of the depth metrics
+        kept = _samples(sparse) if self.depth_gt is not None and sparse is not None else None  # for the metrics
         self.kfs[kf_id] = _KfDense(
             kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse, sparse=kept
         )
@@ -466,7 +466,7 @@ class DenseMapper:
         uv, z = self._observed_points(backend, d.kf_id)
         uv_net = self.mapping.points_to_network(uv)
         self.per_kf_metrics[d.kf_id] = self._submit(
-            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, d.sparse
+            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, _image(d.sparse)
         )
 
     def _depth_errors(
@@ -583,6 +583,28 @@ class DenseMapper:
             res["depth_metrics_keyframes"] = len(per_kf)
             res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"
         return res
+
+
+def _samples(sparse: np.ndarray) -> tuple[tuple[int, int], np.ndarray, np.ndarray]:
+    """A sparse depth image as ``(shape, flat indices, values)`` of its samples: what a keyframe keeps of its
+    network input for the evaluation (a few hundred numbers, not the image)."""
+    idx = np.flatnonzero(sparse > 0)
+    return sparse.shape, idx, sparse.ravel()[idx]
+
+
+def _image(samples: tuple | None) -> np.ndarray | None:
+    """The sparse depth image back from :func:`_samples` (None stays None).
+
+    >>> s = np.zeros((2, 3), np.float32); s[1, 2] = 4.0
+    >>> bool((_image(_samples(s)) == s).all()), _image(None)
+    (True, None)
+    """
+    if samples is None:
+        return None
+    shape, idx, vals = samples
+    out = np.zeros(shape, vals.dtype)
+    out.ravel()[idx] = vals
+    return out
 
 
 #: The rows of ``depth_metrics`` in ``metrics.json``: the estimates, then the references (see ``_depth_errors``).

@@ -148,7 +148,7 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             + (f", median of the true depth {dm['median']['rmse']:.3f}" if dm.get("median") else "")
         )
     if dense:
-        names = ("dense_map.ply", "dense_map.png", "dense_mesh.ply", "keyframe_depth/")
+        names = ("dense_map.ply", "dense_map.png", "keyframe_depth.png", "dense_mesh.ply", "keyframe_depth/")
         dense_files = ", ".join(n for n in names if (out / n).exists())
         mesh = (
             f", mesh {m['dense_mesh_vertices']} vertices {m['dense_mesh_faces']} faces"

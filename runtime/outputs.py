@@ -46,6 +46,7 @@ SLAM_OUTPUTS = (
     "slam.rrd",
     "dense_map.ply",
     "dense_map.png",
+    "keyframe_depth.png",
     "dense_mesh.ply",
     "keyframe_depth",
 )

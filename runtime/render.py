@@ -11,6 +11,9 @@ frame. To show them as pictures without a 3-D viewer:
 * :func:`project_points` projects a polyline (e.g. a trajectory) into the same image, for overlays;
 * :func:`map_views` is the picture `dit-slam` writes of the dense map (`dense_map.png`): a top and an oblique view
   with the trajectory;
+* :func:`depth_panels` is the picture of a few keyframes' depth that `dit-slam` writes (`keyframe_depth.png`):
+  each keyframe's image, its sparse network input interpolated, the network's depth and its uncertainty (and the
+  true depth when the sequence has it), side by side;
 * :func:`align_se3` is the SE(3) alignment (Umeyama, no scale) of an estimated trajectory to ground truth,
   as a transform, so that the maps can be drawn in the ground-truth frame (``runtime.eval`` aligns the
   same way inside ``evo`` but returns only the aligned positions).
@@ -26,7 +29,7 @@ import numpy as np
 
 from runtime.geometry import Camera, inv_T, project_pinhole
 
-__all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3", "map_views"]
+__all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3", "map_views", "depth_panels"]
 
 
 @dataclass
@@ -253,3 +256,82 @@ def map_views(
                 cv2.polylines(img, [line], False, (220, 30, 30), 2, cv2.LINE_AA)
         views.append(img)
     return np.concatenate(views, axis=1)
+
+
+def _colour(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Turbo colours of ``x`` over ``[lo, hi]`` (H, W, 3) uint8 RGB; pixels with ``x <= 0`` or not finite are
+    black (no value)."""
+    import cv2
+
+    x = np.asarray(x, np.float64)
+    ok = np.isfinite(x) & (x > 0)
+    u8 = np.clip((np.where(ok, x, lo) - lo) / max(hi - lo, 1e-9) * 255.0, 0, 255).astype(np.uint8)
+    rgb = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)[..., ::-1].copy()
+    rgb[~ok] = 0
+    return rgb
+
+
+def depth_panels(rows: list[dict], min_width: int = 240) -> np.ndarray:
+    """A picture of keyframes' depth (``keyframe_depth.png``): one row a keyframe, the panels side by side.
+
+    Panels: the grey image with the sparse network input's samples as dots; those samples interpolated (the
+    reference a network with sparse input has to beat); the network's depth; its uncertainty; the true depth
+    where a row has it. The depth panels of a row share one colour scale (turbo, near = blue, from the 2nd to
+    the 98th percentile of the row's depths), the uncertainty has its own; black is no value. Each row's title
+    gives its scales.
+
+    Args:
+        rows: dicts with ``image`` (h, w) uint8 grey, ``sparse`` (h, w) metres (0 = no sample) or None,
+            ``depth`` and ``uncertainty`` (h, w) metres, optional ``gt`` (h, w) metres (0 = invalid) and
+            ``title`` (str); every row at one size.
+        min_width: panels are enlarged (nearest neighbour, by an integer factor) to at least this width.
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+
+    Raises:
+        ValueError: no rows, or arrays of different shapes.
+    """
+    import cv2
+
+    from runtime.densify import interpolate_sparse
+
+    if not rows:
+        raise ValueError("depth_panels: no rows")
+    h, w = np.asarray(rows[0]["depth"]).shape
+    k = max(1, int(np.ceil(min_width / w)))
+    with_gt = any(r.get("gt") is not None for r in rows)
+    names = ["image, map points", "points interpolated", "network depth", "uncertainty"] + (
+        ["true depth"] if with_gt else []
+    )
+    head = 18  # px of the title line above each row
+    out = []
+    for r in rows:
+        arrays = [r["image"], r["depth"], r["uncertainty"]] + [r[n] for n in ("sparse", "gt") if r.get(n) is not None]
+        if any(np.asarray(a).shape != (h, w) for a in arrays):
+            raise ValueError(f"depth_panels: every array must be {(h, w)}, got {[np.asarray(a).shape for a in arrays]}")
+        depth = np.asarray(r["depth"], np.float64)
+        sparse = None if r.get("sparse") is None else np.asarray(r["sparse"], np.float64)
+        gt = None if r.get("gt") is None else np.asarray(r["gt"], np.float64)
+        vals = np.concatenate([x[np.isfinite(x) & (x > 0)] for x in (depth, gt) if x is not None])
+        lo, hi = np.percentile(vals, [2, 98]) if vals.size else (0.0, 1.0)
+        img = np.repeat(np.asarray(r["image"], np.uint8)[..., None], 3, axis=2).copy()
+        fill = np.zeros((h, w)) if sparse is None or not (sparse > 0).any() else interpolate_sparse(sparse)
+        unc = np.asarray(r["uncertainty"], np.float64)
+        u_hi = float(np.percentile(unc[np.isfinite(unc)], 98)) if np.isfinite(unc).any() else 1.0
+        panels = [img, _colour(fill, lo, hi), _colour(depth, lo, hi), _colour(unc, 0.0, u_hi)]
+        if with_gt:
+            panels.append(_colour(gt if gt is not None else np.zeros((h, w)), lo, hi))
+        panels = [np.ascontiguousarray(np.kron(p, np.ones((k, k, 1), np.uint8))) for p in panels]
+        if sparse is not None:
+            for v, u in np.argwhere(sparse > 0):
+                c = (int(u * k + k // 2), int(v * k + k // 2))
+                cv2.circle(panels[0], c, max(1, k), (255, 40, 40), -1, cv2.LINE_AA)
+        band = np.full((head, w * k * len(panels), 3), 255, np.uint8)
+        title = f"{r.get('title', '')}  depth {lo:.2f}-{hi:.2f} m, uncertainty 0-{u_hi:.2f} m".strip()
+        cv2.putText(band, title, (4, head - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        row = np.concatenate(panels, axis=1)
+        for i, name in enumerate(names):
+            cv2.putText(row, name, (i * w * k + 4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+        out += [band, row]
+    return np.concatenate(out, axis=0)

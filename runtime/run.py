@@ -130,7 +130,11 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         log.error("never initialised: no trajectory (%s)", why)
     metrics.update(_evaluate(seq, ts, T, out, plot))
     if plot and mapper is not None and mapper.dense_map is not None:
-        _write_map_picture(out / "dense_map.png", mapper.dense_map, T)
+        from runtime.render import depth_panels, map_views
+
+        _write_png(out / "dense_map.png", map_views(*mapper.dense_map, T[:, :3, 3] if len(T) else None))
+        if mapper.depth_views:
+            _write_png(out / "keyframe_depth.png", depth_panels(mapper.depth_views))
     metrics["segments"] = _segments(system, seq, ts, T, out)
     if recorder is not None:
         recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
@@ -304,13 +308,10 @@ def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict
     return res
 
 
-def _write_map_picture(path: Path, dense_map: tuple, T: np.ndarray) -> None:
-    """``dense_map.png``: top and oblique views of the dense map (:func:`runtime.render.map_views`)."""
+def _write_png(path: Path, img: np.ndarray) -> None:
+    """An RGB picture (``dense_map.png``: :func:`runtime.render.map_views`; ``keyframe_depth.png``:
+    :func:`runtime.render.depth_panels`), written atomically."""
     import cv2
-
-    from runtime.render import map_views
-
-    img = map_views(dense_map[0], dense_map[1], T[:, :3, 3] if len(T) else None)
 
     def write(p: Path) -> None:
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))

@@ -130,3 +130,33 @@ def test_map_views_frame_the_map_and_draw_the_trajectory():
     cols = np.nonzero(((top[..., 0] > 150) & (top[..., 1] < 100)).any(0))[0]
     assert cols.max() - cols.min() > 40  # the trajectory runs along world x: across the top view
     assert map_views(np.zeros((0, 3)), None, None, size=(40, 30)).shape == (30, 80, 3)  # empty map: blank views
+
+
+def test_depth_panels_share_one_colour_scale_per_row():
+    """``keyframe_depth.png``: the panels of a row side by side. Known answers: a depth linear in the pixels,
+    sampled at the four corners, interpolates to itself, so the "points interpolated", "network depth" and "true
+    depth" panels are the same pixels (one colour scale per row); no value is black; no true depth, no panel."""
+    from runtime.render import depth_panels
+
+    h, w, k = 12, 10, 4
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    depth = 1.0 + 0.2 * u + 0.1 * v
+    sparse = np.zeros_like(depth)
+    for r, c in ((0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1)):
+        sparse[r, c] = depth[r, c]
+    image = (16 * v + u).astype(np.uint8)
+    row = {"image": image, "sparse": sparse, "depth": depth, "uncertainty": np.full((h, w), 0.1), "gt": depth}
+    pic = depth_panels([row, dict(row, title="second")], min_width=40)
+    band = 18
+    assert pic.shape == (2 * (band + h * k), 5 * w * k, 3) and pic.dtype == np.uint8
+    panel = [pic[band + 24 : band + h * k, i * w * k : (i + 1) * w * k] for i in range(5)]  # below the labels
+    assert np.array_equal(panel[1], panel[2]) and np.array_equal(panel[2], panel[4])
+    assert np.abs(panel[2].astype(int) - panel[3]).max() > 50  # the uncertainty has its own scale
+    holes = dict(row, depth=np.where(u > 5, 0.0, depth), gt=None)
+    pic = depth_panels([holes], min_width=40)
+    assert pic.shape == (band + h * k, 4 * w * k, 3)  # no true depth: four panels
+    assert (pic[-1, 2 * w * k + 6 * k : 3 * w * k] == 0).all()  # no depth there: black
+    with pytest.raises(ValueError, match="every array"):
+        depth_panels([dict(row, gt=depth[:-1])])
+    with pytest.raises(ValueError, match="no rows"):
+        depth_panels([])

@@ -103,7 +103,7 @@ class _KfDense:
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
     n_sparse: int = -1  # map points in the network's sparse input (-1: the network takes none)
-    sparse: tuple | None = None  # that input's samples (:func:`_samples`), kept to score its interpolation against GT
+    sparse: tuple | None = None  # that input's samples (:func:`_samples`): the metrics' and the picture's reference
     map_code: Future | None = None  # -> (C,) the code refined at fixed poses for the map (None: the window's)
 
     @property
@@ -168,6 +168,7 @@ class DenseMapper:
         self.t_first_ns: int | None = None  # the window's first keyframe's time (start_after_s counts from it)
         self.armed_for: int | None = None  # the backend's init_kf_id that t_first_ns belongs to
         self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
+        self.depth_views: list[dict] = []  # a few window keyframes' depths once finish() ran (keyframe_depth.png)
         self._pool: ThreadPoolExecutor | None = None  # the background network pass (DenseConfig.background)
         self.fused_map = VoxelMap.from_config(self.cfg.map)  # the run's dense map (network thread only)
         self.tsdf = TsdfVolume.from_config(self.cfg.map) if self.cfg.map.mesh else None  # its TSDF (same thread)
@@ -195,7 +196,7 @@ class DenseMapper:
             n_sparse = int((sparse > 0).sum())
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
         job = self._submit(self._network_pass, img_net, sparse, frame_idx)
-        kept = _samples(sparse) if self.depth_gt is not None and sparse is not None else None  # for the metrics
+        kept = None if sparse is None else _samples(sparse)
         self.kfs[kf_id] = _KfDense(
             kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse, sparse=kept
         )
@@ -526,6 +527,7 @@ class DenseMapper:
         if self.cfg.save_maps and active:
             maps = [(f"kf{k:05d}", depth, unc) for k, depth, unc in zip(active, depths, uncs, strict=True)]
             write_keyframe_maps(out / "keyframe_depth", maps)
+        self.depth_views = self._views(active, depths, uncs)
         xyz, rgb, nrm, count = self.fused_map.points()
         write_fused_map(out / "dense_map.ply", xyz, rgb, nrm, count)
         self.dense_map = (xyz, rgb)  # for the Rerun recording
@@ -534,6 +536,25 @@ class DenseMapper:
         if self.tsdf is not None:
             res.update(self._write_mesh(out))
         return res
+
+    def _views(self, active: list[int], depths: list, uncs: list, n: int = 4) -> list[dict]:
+        """Rows of :func:`runtime.render.depth_panels` for ``n`` keyframes spread over the window ``active``
+        (their final depths and uncertainties), with the true depth where the sequence has it."""
+        rows = []
+        for i in sorted({int(round(x)) for x in np.linspace(0, len(active) - 1, min(n, len(active)))}):
+            d = self.kfs[active[i]]
+            gt = self.depth_gt(d.frame_idx) if self.depth_gt is not None else None
+            rows.append(
+                {
+                    "image": d.image,
+                    "sparse": _image(d.sparse),
+                    "depth": depths[i],
+                    "uncertainty": uncs[i],
+                    "gt": None if gt is None else gt_depth_to_network(gt, self.camera, self.mapping),
+                    "title": f"keyframe {d.kf_id} (frame {d.frame_idx}), {max(d.n_sparse, 0)} map points",
+                }
+            )
+        return rows
 
     def _write_mesh(self, out: Path) -> dict:
         """``dense_mesh.ply``: the surface of the run's TSDF; its size and costs for ``metrics.json``."""

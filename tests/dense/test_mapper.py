@@ -365,6 +365,11 @@ def test_cli_dense_true_runs_with_the_shipped_model(seq8, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "dense_map.ply" in text and "window code" in text and "map code" in text
     assert "interpolated input" in text and "median of the true depth" in text
+    # the picture of 4 window keyframes' depth: a title band and a row each, 5 panels (the sequence has depth)
+    import cv2
+
+    pic = cv2.imread(str(out / "keyframe_depth.png"))
+    assert "keyframe_depth.png" in text and pic is not None and pic.shape[0] > 4 * 128 and pic.shape[1] % 5 == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["depth_metrics"]["map"] == m["depth_metrics"]["optimised"]
     assert m["timing_dense_ms_per_frame"]["map_codes"] == 0

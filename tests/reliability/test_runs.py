@@ -54,13 +54,15 @@ def test_a_new_run_removes_the_earlier_runs_outputs_and_says_so(tiny_seq, tmp_pa
     (out / "keyframe_depth").mkdir(parents=True)
     (out / "dense_map.ply").write_text("old dense map")
     (out / "dense_map.png").write_text("old picture")
+    (out / "keyframe_depth.png").write_text("old depth picture")
     (out / "dense_mesh.ply").write_text("old mesh")
     (out / "notes.txt").write_text("not ours")
     slam_main([f"sequence={tiny_seq}", f"out={out}", "progress=false", "dense=false"])  # a sparse run writes none
     text = capsys.readouterr().out
     assert "removed the outputs of the earlier run" in text
-    assert "dense_map.ply, dense_map.png, dense_mesh.ply, keyframe_depth" in text
-    assert not any((out / n).exists() for n in ("dense_map.ply", "dense_map.png", "dense_mesh.ply", "keyframe_depth"))
+    assert "dense_map.ply, dense_map.png, keyframe_depth.png, dense_mesh.ply, keyframe_depth" in text
+    old = ("dense_map.ply", "dense_map.png", "keyframe_depth.png", "dense_mesh.ply", "keyframe_depth")
+    assert not any((out / n).exists() for n in old)
     assert (out / "notes.txt").read_text() == "not ours"
     m = json.loads((out / "metrics.json").read_text())
     assert m["complete"] is True and m["run_id"] and m["frames_processed"] == m["frames"] == 80

@@ -29,7 +29,10 @@ import numpy as np
 
 from runtime.geometry import Camera, inv_T, project_pinhole
 
-__all__ = ["RenderedPoints", "look_at", "project_points", "render_points", "align_se3", "map_views", "depth_panels"]
+__all__ = [
+    *("RenderedPoints", "look_at", "project_points", "render_points", "align_se3", "map_views"),
+    *("colour_map", "depth_panels"),
+]
 
 
 @dataclass
@@ -258,17 +261,24 @@ def map_views(
     return np.concatenate(views, axis=1)
 
 
-def _colour(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Turbo colours of ``x`` over ``[lo, hi]`` (H, W, 3) uint8 RGB; pixels with ``x <= 0`` or not finite are
-    black (no value)."""
+def colour_map(x: np.ndarray, lo: float, hi: float, cmap: int | None = None, invalid=None) -> np.ndarray:
+    """Colours of ``x`` over ``[lo, hi]`` (..., 3) uint8 RGB through an OpenCV colour map (``cmap``, default
+    turbo); pixels where ``invalid`` (a bool mask like ``x``) is set are black. The depth pictures of
+    ``dit-slam`` (:func:`depth_panels`) and of training (``train.module.image_panel``) use it."""
     import cv2
 
+    x = np.asarray(x)
+    if invalid is not None:
+        x = np.where(invalid, lo, x)
+    u8 = np.clip((x - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255).astype(np.uint8)
+    rgb = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO if cmap is None else cmap)[..., ::-1]
+    return rgb if invalid is None else np.where(np.asarray(invalid)[..., None], 0, rgb).astype(np.uint8)
+
+
+def _colour(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """:func:`colour_map` of a depth-like image: values ``<= 0`` or not finite are no value (black)."""
     x = np.asarray(x, np.float64)
-    ok = np.isfinite(x) & (x > 0)
-    u8 = np.clip((np.where(ok, x, lo) - lo) / max(hi - lo, 1e-9) * 255.0, 0, 255).astype(np.uint8)
-    rgb = cv2.applyColorMap(u8, cv2.COLORMAP_TURBO)[..., ::-1].copy()
-    rgb[~ok] = 0
-    return rgb
+    return colour_map(x, lo, hi, invalid=~(np.isfinite(x) & (x > 0)))
 
 
 def depth_panels(rows: list[dict], min_width: int = 240) -> np.ndarray:

@@ -40,6 +40,7 @@ import torch
 from torch import nn
 
 from models.losses import total_loss
+from runtime.render import colour_map
 from train.metrics import DepthMetrics
 
 __all__ = ["DepthModule", "cosine_schedule", "constant_schedule", "net_spec"]
@@ -303,16 +304,6 @@ def _median_prediction(gt: torch.Tensor) -> torch.Tensor:
     return med.reshape(b, 1, 1, 1).expand_as(gt)
 
 
-def _colorize(
-    x: np.ndarray, lo: float, hi: float, cmap: int = cv2.COLORMAP_TURBO, invalid=None
-) -> np.ndarray:
-    u8 = np.clip((x - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255).astype(np.uint8)
-    rgb = cv2.applyColorMap(u8, cmap)[..., ::-1]
-    if invalid is not None:
-        rgb = np.where(invalid[..., None], 0, rgb)
-    return rgb
-
-
 def image_panel(
     image: np.ndarray, gt: np.ndarray, depth: np.ndarray, uncertainty: np.ndarray | None, sparse: bool
 ) -> np.ndarray:
@@ -335,14 +326,14 @@ def image_panel(
         lo = float(g[valid].min()) if valid.any() else float(d.min())
         if sparse:
             v, u = np.nonzero(x[-1] > 0)
-            img[v, u] = _colorize(x[-1][v, u][None], lo, hi)[0]
-        cols = [img, _colorize(g, lo, hi, invalid=~valid), _colorize(d, lo, hi)]
+            img[v, u] = colour_map(x[-1][v, u][None], lo, hi)[0]
+        cols = [img, colour_map(g, lo, hi, invalid=~valid), colour_map(d, lo, hi)]
         if uncertainty is not None:
             un = uncertainty[i, 0]
-            cols.append(_colorize(un, 0.0, float(np.percentile(un, 99)) + 1e-6, cv2.COLORMAP_INFERNO))
+            cols.append(colour_map(un, 0.0, float(np.percentile(un, 99)) + 1e-6, cv2.COLORMAP_INFERNO))
         err = np.abs(d - g)
         cols.append(
-            _colorize(
+            colour_map(
                 err,
                 0.0,
                 max(0.5, float(np.percentile(err[valid], 95)) if valid.any() else 1.0),

@@ -103,7 +103,7 @@ class _KfDense:
     relin: Future | None = None  # the relinearisation submitted after the last optimisation
     lin_code: np.ndarray | None = None  # where the decoder is (or is being) linearised; None: c = 0
     n_sparse: int = -1  # map points in the network's sparse input (-1: the network takes none)
-    sparse: tuple | None = None  # that input's samples (:func:`_samples`): the metrics' and the picture's reference
+    sparse_points: tuple | None = None  # (uv, z): network pixels and depths of that input's map points
     map_code: Future | None = None  # -> (C,) the code refined at fixed poses for the map (None: the window's)
 
     @property
@@ -189,19 +189,25 @@ class DenseMapper:
             del self.kfs[k]
         und = self.camera.undistort_image(image)
         img_net = self.mapping.image_to_network(und)
-        sparse, n_sparse = None, -1
+        points, sparse, n_sparse = None, None, -1
         if self.net.uses_sparse:
             uv, z = self._observed_points(backend, kf_id)
-            sparse = sparse_depth_image(self.mapping.points_to_network(uv), z, (self.net.height, self.net.width))
+            points = (self.mapping.points_to_network(uv), z)
+            sparse = self._sparse_input(points)
             n_sparse = int((sparse > 0).sum())
         feat = self.mapping.points_to_network(np.asarray(feat_uv_u, np.float64).reshape(-1, 2))
         job = self._submit(self._network_pass, img_net, sparse, frame_idx)
-        kept = None if sparse is None else _samples(sparse)
         self.kfs[kf_id] = _KfDense(
-            kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse, sparse=kept
+            kf_id, frame_idx, job, feat, img_net, np.zeros(self.net.code_dim), n_sparse=n_sparse, sparse_points=points
         )
         self.stats.n_sparse.append(n_sparse)
         self.timers["dense_keyframe"] += time.perf_counter() - t0
+
+    def _sparse_input(self, points: tuple | None) -> np.ndarray | None:
+        """The network's sparse depth input (h, w) [m] from its map points ``(uv, z)`` at network pixels (None
+        stays None): made once for the network pass, and again from the kept points for the evaluation and the
+        picture (a keyframe keeps its points, not the image)."""
+        return None if points is None else sparse_depth_image(*points, (self.net.height, self.net.width))
 
     def _unscaled(self, n_sparse: int) -> bool:
         """A keyframe whose network input held ``n_sparse`` map points (-1: the network takes none) has a depth
@@ -466,8 +472,9 @@ class DenseMapper:
         d.evaluated = True
         uv, z = self._observed_points(backend, d.kf_id)
         uv_net = self.mapping.points_to_network(uv)
+        sparse_in = self._sparse_input(d.sparse_points)
         self.per_kf_metrics[d.kf_id] = self._submit(
-            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, _image(d.sparse)
+            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, sparse_in
         )
 
     def _depth_errors(
@@ -547,7 +554,7 @@ class DenseMapper:
             rows.append(
                 {
                     "image": d.image,
-                    "sparse": _image(d.sparse),
+                    "sparse": self._sparse_input(d.sparse_points),
                     "depth": depths[i],
                     "uncertainty": uncs[i],
                     "gt": None if gt is None else gt_depth_to_network(gt, self.camera, self.mapping),
@@ -604,28 +611,6 @@ class DenseMapper:
             res["depth_metrics_keyframes"] = len(per_kf)
             res["depth_metrics_unit"] = "m (RMSE, MAE), 1/m (iRMSE)"
         return res
-
-
-def _samples(sparse: np.ndarray) -> tuple[tuple[int, int], np.ndarray, np.ndarray]:
-    """A sparse depth image as ``(shape, flat indices, values)`` of its samples: what a keyframe keeps of its
-    network input for the evaluation (a few hundred numbers, not the image)."""
-    idx = np.flatnonzero(sparse > 0)
-    return sparse.shape, idx, sparse.ravel()[idx]
-
-
-def _image(samples: tuple | None) -> np.ndarray | None:
-    """The sparse depth image back from :func:`_samples` (None stays None).
-
-    >>> s = np.zeros((2, 3), np.float32); s[1, 2] = 4.0
-    >>> bool((_image(_samples(s)) == s).all()), _image(None)
-    (True, None)
-    """
-    if samples is None:
-        return None
-    shape, idx, vals = samples
-    out = np.zeros(shape, vals.dtype)
-    out.ravel()[idx] = vals
-    return out
 
 
 #: The rows of ``depth_metrics`` in ``metrics.json``: the estimates, then the references (see ``_depth_errors``).

@@ -470,8 +470,11 @@ def test_depth_metrics_carry_the_interpolated_input_and_the_median_as_references
     m.depth_gt, m.camera, m.mapping = (lambda idx: gt), None, None
     provider = SimpleNamespace(exact=lambda code: np.full(gt.shape, 3.0) + float(np.sum(code)))
     uv, z = np.array([[0.0, 0.0], [23.0, 15.0]]), np.array([gt[0, 0], gt[15, 23]])
-    # what a keyframe keeps of its network input: the samples, from which the image comes back exactly
-    assert np.array_equal(mapper_mod._image(mapper_mod._samples(sparse_in)), sparse_in)
+    # what a keyframe keeps of its network input: the map points, from which the image comes back exactly
+    m.net = SimpleNamespace(height=16, width=24)
+    corners = np.array([[0.0, 0.0], [23.0, 0.0], [0.0, 15.0], [23.0, 15.0]])
+    kept = (corners, gt[corners[:, 1].astype(int), corners[:, 0].astype(int)])
+    assert np.array_equal(m._sparse_input(kept), sparse_in.astype(np.float32)) and m._sparse_input(None) is None
     out = m._depth_errors(provider, np.zeros(8), 0, uv, z, None, sparse_in)
     assert out["interpolated"]["rmse"] < 1e-6 and out["interpolated"]["coverage"] == 1.0
     assert out["prior"]["rmse"] > 0.3  # the constant 3 m: far from the plane

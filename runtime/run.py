@@ -73,13 +73,14 @@ def run_sequence(
 
 
 def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth_source, probe, run_id, stop):
+    n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    seq, intrinsics = _refine_intrinsics(seq, cfg, n, progress, stop, dense=dense is not None)
     mapper = _make_mapper(seq, dense, model_dir, depth_source, probe) if dense is not None else None
     live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg, dense=mapper)  # the one code path, as live users feed it
     system = live.system
     recorder = _make_recorder(viz, out, seq)
-    n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
     images = ImageCheck()
-    t_start, cpu_start = time.perf_counter(), time.process_time()
     done = _run_frames(live, seq, n, recorder, progress, stop, images)
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
     ts, T, pts = _write_trajectory_and_map(system, out)
@@ -103,6 +104,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         "map_points_refound": system.n_map_matches,
         "initialised_at_s": (ns_to_s(ts[0]) if len(ts) else None),
         "initialisation": system.init_info,  # method, when, and the figures of the solve
+        "intrinsics": intrinsics,  # the written and the refined camera intrinsics (runtime.calibration)
         "events": system.events[:200],
         "n_events": len(system.events),
         "relocalisations": system.relocalisations,
@@ -190,7 +192,59 @@ def _make_mapper(seq, dense, model_dir, depth_source, probe):
     return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
-def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None) -> int:
+class _Recalibrated:
+    """A sequence seen with another camera model (the refined intrinsics); every other attribute is the wrapped
+    sequence's."""
+
+    def __init__(self, seq, camera) -> None:
+        self.seq, self.camera = seq, camera
+
+    def __getattr__(self, name):
+        return getattr(self.seq, name)
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+
+def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, dense: bool) -> tuple[object, dict]:
+    """A first sparse pass over ``cfg.intrinsics.seconds`` of the sequence and the bundle adjustment of
+    :func:`runtime.calibration.refine_intrinsics`; returns the sequence seen with the refined camera (or as it is)
+    and the report for ``metrics.json``."""
+    from runtime.calibration import refine_intrinsics
+
+    c = cfg.intrinsics
+    if not c.for_system(dense):
+        key = "dense_refine" if dense else "refine"
+        return seq, {"refined": False, "reason": f"off (runtime.intrinsics.{key}=false)"}
+    t0 = time.perf_counter()
+    ts = np.asarray(seq.frame_ts, dtype=np.int64)
+    n1 = min(n, int(np.searchsorted(ts, int(ts[0] + c.seconds * 1e9), "right")))
+    log.info("intrinsics: a first sparse pass over %d frames (%.1f s) to refine the camera", n1, c.seconds)
+    first = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg)
+    first.system.feature_log = []
+    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics")
+    if stop is not None and stop.signal is not None:
+        return seq, {"refined": False, "reason": f"interrupted by {stop.signal}"}
+    traj_ts, traj_T = first.system.trajectory()
+    res = refine_intrinsics(
+        seq.camera,
+        seq.T_b_c,
+        seq.imu,
+        first.imu,
+        first.system.feature_log,
+        traj_ts,
+        traj_T,
+        first.system.noise_scales,
+        c,
+    )
+    report = {"refined": res.accepted, "first_pass_frames": n1, **res.report}
+    report["seconds_total"] = round(time.perf_counter() - t0, 3)
+    return (_Recalibrated(seq, res.camera) if res.accepted else seq), report
+
+
+def _run_frames(
+    live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None, desc: str = "dit-slam"
+) -> int:
     """Feed the first ``n`` frames (images decoded ahead in a thread), each after the IMU samples up to its time,
     to ``live``, until ``stop.signal`` is set; then the IMU samples after the last frame. ``images``: an
     :class:`ImageCheck` that looks at the images. Returns the number of frames processed."""
@@ -200,7 +254,7 @@ def _run_frames(live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=n, unit="frame", desc="dit-slam", dynamic_ncols=True)
+        bar = tqdm(total=n, unit="frame", desc=desc, dynamic_ncols=True)
     for i, img, err, t_wait in _prefetched_images(seq, n):
         if stop is not None and stop.signal is not None:
             break

@@ -43,6 +43,7 @@ from runtime.backend.imu import (
 )
 from runtime.backend.state import Keyframe
 from runtime.backend.window import BackendConfig, SlidingWindowBackend
+from runtime.calibration import IntrinsicsConfig
 from runtime.config import dataclass_from_dict
 from runtime.frontend.features import FeatureConfig
 from runtime.frontend.keyframes import KeyframeConfig, KeyframeSelector, rotation_compensated_parallax
@@ -72,6 +73,7 @@ class SlamConfig:
     imu: ImuNoiseConfig = field(default_factory=ImuNoiseConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     reloc: RelocConfig = field(default_factory=RelocConfig)
+    intrinsics: IntrinsicsConfig = field(default_factory=IntrinsicsConfig)
     refine_non_keyframes: bool = True  # motion-only refinement of every frame against tracked landmarks
     refine_min_landmarks: int = 8  # fewer: keep the IMU prediction
     refine_prior_rot_sigma: float = 0.01  # rad, IMU-predicted pose as a prior
@@ -155,6 +157,7 @@ class SlamSystem:
         self.kf_reasons: dict[str, int] = defaultdict(int)
         self.next_kf_id = 0
         self.dense = dense
+        self.feature_log: list[FrameFeatures] | None = None  # set to a list: every tracked frame's features
         if dense is not None:
             dense.timers = self.timers
             self.backend.add_provider(dense)
@@ -301,6 +304,8 @@ class SlamSystem:
             self.event(ts, f"frame {frame_idx}: image rejected ({e})")
             return None, None
         self.img_ts = ts
+        if self.feature_log is not None:
+            self.feature_log.append(feats)
         return feats, image
 
     def _refine(self, T_pred: np.ndarray, feats: FrameFeatures):

@@ -8,8 +8,10 @@ import signal
 import pytest
 
 from apps.slam import main as slam_main
+from runtime.calibration import IntrinsicsConfig
 from runtime.io.euroc import read_euroc
 from runtime.run import run_sequence
+from runtime.slam import SlamConfig
 
 
 def _fails(capsys, args):
@@ -88,13 +90,30 @@ def test_sigint_stops_and_writes_what_was_processed(tiny_seq, tmp_path):
 
     seq.image = image
     out = tmp_path / "o"
-    m = run_sequence(seq, out, progress=False, plot=False)
+    cfg = SlamConfig(intrinsics=IntrinsicsConfig(refine=False))  # the signal comes in the main pass
+    m = run_sequence(seq, out, cfg, progress=False, plot=False)
     assert m["complete"] is False and m["interrupted_by"] == "SIGINT"
     assert 26 <= m["frames_processed"] <= 31 < m["frames"] == len(seq)
     on_disk = json.loads((out / "metrics.json").read_text())
     assert on_disk["complete"] is False and on_disk["frames_processed"] == m["frames_processed"]
     assert (out / "trajectory.txt").is_file() and (out / "sparse_map.ply").is_file()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_sigint_in_the_intrinsics_pass_stops_the_run(tiny_seq, tmp_path):
+    seq = read_euroc(tiny_seq)
+    read = seq.image
+
+    def image(i):  # Ctrl-C during the first (intrinsics) pass: no main pass, the written camera kept
+        if i == 10:
+            os.kill(os.getpid(), signal.SIGINT)
+        return read(i)
+
+    seq.image = image
+    m = run_sequence(seq, tmp_path / "o", progress=False, plot=False)
+    assert m["complete"] is False and m["interrupted_by"] == "SIGINT" and m["frames_processed"] == 0
+    assert m["intrinsics"] == {"refined": False, "reason": "interrupted by SIGINT"}
+    assert json.loads((tmp_path / "o" / "metrics.json").read_text())["complete"] is False
 
 
 def test_a_killed_run_leaves_a_metrics_stub_marked_incomplete(tmp_path):

@@ -1,0 +1,303 @@
+"""The camera's intrinsics refined from the sequence itself: a visual-inertial bundle adjustment with the calibration
+as a variable.
+
+A written calibration is never exact. On the realistic presets of ``dit-sim euroc`` (focal lengths 0.5 % off, the
+principal point 1 px, the distortion 2 %, as a user's own calibration would be) the error of the written intrinsics
+alone cost flight seed 0 about 20 mm of its 23 mm Sim(3) ATE and handheld seed 2 about 22 of its 31 mm (2026-11-28,
+``reports/ablations.md``). Monocular vision cannot see a focal error by itself, but the gyroscope can: a rotation of
+angle ``a`` moves the image by ``f a`` pixels, so a wrong ``f`` makes the images disagree with the IMU. OpenVINS
+estimates the intrinsics online for this reason; here they are estimated once, from the first seconds of the run.
+
+:func:`refine_intrinsics` takes what a first sparse pass over those seconds gives (its per-frame poses and the
+front end's tracks) and solves one Levenberg-Marquardt problem with GTSAM, all factors built in:
+
+* every ``keyframe_step``-th posed frame gets a body state ``X, V, B`` and a camera pose ``C`` tied to it by the
+  fixed ``T_b_c`` (``BetweenFactorPose3``, 1e-6 sigma);
+* consecutive frames are linked by ``CombinedImuFactor`` with the first pass's IMU noise (its raise included);
+* each track seen in at least ``min_views`` of these frames is a landmark, observed through
+  ``GeneralSFMFactor2Cal3DS2`` on the raw (distorted, rolling-shutter corrected) pixels, with a Huber kernel;
+* the calibration ``K`` (``Cal3DS2``: fx, fy, skew, cx, cy, k1, k2, p1, p2) starts at the written one, with a
+  weak prior on it (skew held at 0);
+* the first pose is held and the first bias weakly tied to 0 (the gauge).
+
+The result is accepted when the solve used enough landmarks and the change stays within physical bounds; otherwise
+the written calibration is kept and the reason reported. Radial-tangential cameras only (and the distortion-free
+pinhole camera of an undistorted view); an equidistant (fisheye) model keeps its calibration.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = ["IntrinsicsConfig", "IntrinsicsResult", "refine_intrinsics", "tracks_from_features"]
+
+
+@dataclass
+class IntrinsicsConfig:
+    """Settings of the intrinsics refinement (``runtime.intrinsics``)."""
+
+    refine: bool = True  # the sparse system (dense=false) refines the written intrinsics before its run
+    dense_refine: bool = False  # the dense system: off, it lost its rule (MH_05 runs <= 0.05 m: 2 -> 1 of 11)
+    seconds: float = 15.0  # seconds of data of the first (sparse) pass from the first frame
+    frame_step: int = 3  # every n-th posed frame of the first pass is a frame of the adjustment
+    min_views: int = 3  # a track needs this many frames of the adjustment
+    pixel_sigma: float = 1.0  # [px] reprojection sigma
+    huber_k: float = 1.345  # Huber threshold in sigmas
+    focal_prior_rel: float = 0.01  # prior sigma of fx, fy relative to the written ones
+    principal_prior_px: float = 2.0  # [px] prior sigma of cx, cy
+    radial_prior_rel: float = 0.04  # prior sigma of k1, k2 relative to the written ones (at least radial_prior_min)
+    radial_prior_min: float = 1e-3
+    tangential_prior: float = 1e-5  # prior sigma of p1, p2
+    min_landmarks: int = 150  # fewer: keep the written calibration
+    min_frames: int = 15  # fewer frames of the adjustment: keep the written calibration
+    max_focal_change_rel: float = 0.05  # a larger change is taken for a failure: keep the written calibration
+    max_principal_change_px: float = 30.0
+    iterations: int = 50  # LM iterations
+    max_dropped: int = 50  # landmarks LM may move behind a camera (each dropped, the solve restarted)
+
+    def for_system(self, dense: bool) -> bool:
+        """Whether the sparse (``dense=False``) or the dense system refines the intrinsics."""
+        return self.dense_refine if dense else self.refine
+
+    def __post_init__(self) -> None:
+        if not self.seconds > 0:
+            raise ValueError(f"intrinsics.seconds={self.seconds}: must be > 0")
+        if self.frame_step < 1 or self.min_views < 2:
+            raise ValueError("intrinsics.frame_step must be >= 1 and intrinsics.min_views >= 2")
+        for name in (
+            "pixel_sigma",
+            "focal_prior_rel",
+            "principal_prior_px",
+            "radial_prior_rel",
+            "radial_prior_min",
+            "tangential_prior",
+        ):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"intrinsics.{name}={getattr(self, name)}: must be > 0")
+
+
+@dataclass
+class IntrinsicsResult:
+    """``camera``: the refined camera when ``accepted``, else the written one; ``report``: figures for
+    ``metrics.json`` (written and refined intrinsics, counts, the reason when not accepted)."""
+
+    camera: object
+    accepted: bool
+    report: dict
+
+
+def tracks_from_features(camera, features: list, frame_ts: np.ndarray, min_views: int) -> tuple[list, np.ndarray]:
+    """Tracks over selected frames from the front end's per-frame features.
+
+    Args:
+        camera: the written camera (maps the features' normalised coordinates back to raw pixels).
+        features: :class:`runtime.frontend.tracking.FrameFeatures` of the first pass, in order.
+        frame_ts: (F,) stamps [ns] of the frames of the adjustment.
+        min_views: shortest track kept.
+
+    Returns:
+        ``(tracks, xn)``: each track a list of ``(frame index into frame_ts, raw pixel (2,))``; ``xn`` the same
+        views' normalised coordinates as a list of (V, 2) arrays (for triangulation).
+    """
+    where = {int(t): n for n, t in enumerate(np.asarray(frame_ts, dtype=np.int64))}
+    views: dict[int, list] = {}
+    for f in features:
+        n = where.get(int(f.ts))
+        if n is None or f.ids.size == 0:
+            continue
+        uv, ok = camera.project(np.concatenate([f.xn, np.ones((f.xn.shape[0], 1))], 1))
+        for i, x, q, good in zip(f.ids, f.xn, uv, ok, strict=True):
+            if good:
+                views.setdefault(int(i), []).append((n, q.astype(np.float64), x.astype(np.float64)))
+    tracks = [v for v in views.values() if len(v) >= min_views]
+    return [[(n, q) for n, q, _ in v] for v in tracks], [np.array([x for _, _, x in v]) for v in tracks]
+
+
+def _initial_landmarks(tracks_xn: list, frames: list, T_w_c: np.ndarray, focal: float):
+    """Linear triangulation (the runtime's) of each track from the first pass's camera poses."""
+    from runtime.frontend.triangulation import triangulate
+
+    M = len(tracks_xn)
+    V = max((len(x) for x in tracks_xn), default=1)
+    T = np.tile(np.eye(4), (M, V, 1, 1))
+    xn, mask = np.zeros((M, V, 2)), np.zeros((M, V), bool)
+    for m, (fr, x) in enumerate(zip(frames, tracks_xn, strict=True)):
+        T[m, : len(fr)], xn[m, : len(fr)], mask[m, : len(fr)] = T_w_c[fr], x, True
+    X, _, diag = triangulate(T, xn, mask, focal=focal)
+    good = (diag["min_depth"] >= 0.2) & np.isfinite(X).all(1) & (diag["max_err_px"] < 5.0)
+    return X, good
+
+
+def _intrinsics(camera) -> list[float]:
+    d = list(camera.dist) + [0.0] * (4 - len(camera.dist))
+    return [float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), *map(float, d[:4])]
+
+
+def refine_intrinsics(
+    camera,
+    T_b_c: np.ndarray,
+    imu_params,
+    imu,
+    features: list,
+    traj_ts: np.ndarray,
+    traj_T: np.ndarray,
+    noise_scales: tuple[float, float] | None,
+    cfg: IntrinsicsConfig | None = None,
+) -> IntrinsicsResult:
+    """Refine ``camera``'s intrinsics by a visual-inertial bundle adjustment over a first pass (module docstring).
+
+    Args:
+        camera: the written :class:`runtime.geometry.Camera`.
+        T_b_c: (4, 4) cam0 pose in the body frame.
+        imu_params: the IMU's noise densities (io ``ImuParams``).
+        imu: the :class:`runtime.backend.imu.ImuStream` of the sequence.
+        features: the first pass's per-frame :class:`~runtime.frontend.tracking.FrameFeatures`.
+        traj_ts, traj_T: (N,) stamps [ns] and (N, 4, 4) body poses of the first pass's posed frames.
+        noise_scales: (gyro, accel) white-noise multipliers the first pass used (None: the densities as stated).
+        cfg: settings.
+
+    Returns:
+        The refined camera (or the written one, with the reason in ``report["reason"]``).
+    """
+    import gtsam
+    from gtsam.symbol_shorthand import B, C, K, L, V, X
+
+    from runtime.backend.imu import integrate, preintegration_params
+
+    cfg = cfg or IntrinsicsConfig()
+    t0 = time.perf_counter()
+    written = _intrinsics(camera)
+    report: dict = {"written": [round(v, 6) for v in written]}
+
+    def keep(reason: str) -> IntrinsicsResult:
+        report.update(reason=reason, seconds=round(time.perf_counter() - t0, 3))
+        log.info("intrinsics: kept the written calibration (%s)", reason)
+        return IntrinsicsResult(camera, False, report)
+
+    if camera.model != "radtan":
+        return keep(f"camera model {camera.model!r} is not refined (radial-tangential only)")
+    if len(camera.dist) > 4 and any(float(v) != 0.0 for v in camera.dist[4:]):
+        return keep("a distortion with more than four coefficients is not refined")
+    traj_ts = np.asarray(traj_ts, dtype=np.int64)
+    sel = np.arange(0, traj_ts.size, cfg.frame_step)
+    if sel.size < cfg.min_frames:
+        return keep(f"{sel.size} posed frames in the first pass, fewer than {cfg.min_frames}")
+    fts, T_w_b = traj_ts[sel], np.asarray(traj_T, dtype=np.float64)[sel]
+    T_w_c = T_w_b @ T_b_c
+    tracks, tracks_xn = tracks_from_features(camera, features, fts, cfg.min_views)
+    frames = [np.array([n for n, _ in t]) for t in tracks]
+    if not tracks:
+        return keep("no track reaches min_views frames")
+    X_l, good = _initial_landmarks(tracks_xn, frames, T_w_c, camera.fx)
+    report.update(frames=int(sel.size), tracks=len(tracks), landmarks=int(good.sum()))
+    if good.sum() < cfg.min_landmarks:
+        return keep(f"{int(good.sum())} landmarks, fewer than {cfg.min_landmarks}")
+
+    graph, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    K0 = gtsam.Cal3DS2(written[0], written[1], 0.0, written[2], written[3], *written[4:])
+    vals.insert(K(0), K0)
+    fp, pp, tp = cfg.focal_prior_rel, cfg.principal_prior_px, cfg.tangential_prior
+    rp = [max(cfg.radial_prior_rel * abs(k), cfg.radial_prior_min) for k in written[4:6]]
+    k_sig = [fp * written[0], fp * written[1], 1e-9, pp, pp, *rp, tp, tp]
+    graph.add(gtsam.PriorFactorCal3DS2(K(0), K0, gtsam.noiseModel.Diagonal.Sigmas(np.array(k_sig))))
+    params = preintegration_params(imu_params, scales=noise_scales)
+    dt_s = np.maximum(np.diff(fts) * 1e-9, 1e-6)
+    vel = np.gradient(T_w_b[:, :3, 3], np.concatenate([[0.0], np.cumsum(dt_s)]), axis=0)
+    tie = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+    T_bc = gtsam.Pose3(np.asarray(T_b_c, dtype=np.float64))
+    zero = gtsam.imuBias.ConstantBias()
+    for n in range(fts.size):
+        vals.insert(X(n), gtsam.Pose3(T_w_b[n]))
+        vals.insert(V(n), vel[n])
+        vals.insert(B(n), zero)
+        vals.insert(C(n), gtsam.Pose3(T_w_c[n]))
+        graph.add(gtsam.BetweenFactorPose3(X(n), C(n), T_bc, tie))
+        if n:
+            pim = gtsam.PreintegratedCombinedMeasurements(params, zero)
+            integrate(pim, *imu.segment(int(fts[n - 1]), int(fts[n])))
+            graph.add(gtsam.CombinedImuFactor(X(n - 1), V(n - 1), X(n), V(n), B(n - 1), B(n), pim))
+    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(T_w_b[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)))
+    graph.add(
+        gtsam.PriorFactorConstantBias(B(0), zero, gtsam.noiseModel.Diagonal.Sigmas(np.array([0.5] * 3 + [0.2] * 3)))
+    )
+    M = gtsam.noiseModel.mEstimator
+    pix = gtsam.noiseModel.Robust.Create(
+        M.Huber.Create(cfg.huber_k), gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
+    )
+    rows: dict[int, list[int]] = {}  # landmark -> its factors' indices in the graph
+    for m in np.flatnonzero(good):
+        vals.insert(L(int(m)), X_l[m])
+        rows[int(m)] = list(range(graph.size(), graph.size() + len(tracks[m])))
+        for n, q in tracks[m]:
+            graph.add(gtsam.GeneralSFMFactor2Cal3DS2(q, pix, C(int(n)), L(int(m)), K(0)))
+    lp = gtsam.LevenbergMarquardtParams()
+    lp.setMaxIterations(int(cfg.iterations))
+    e0 = graph.error(vals)
+    res, dropped = None, 0
+    while res is None:
+        try:
+            res = gtsam.LevenbergMarquardtOptimizer(graph, vals, lp).optimize()
+        except RuntimeError as e:
+            # a landmark that LM moved behind a camera is dropped and the solve started again; anything else (an
+            # indeterminant system) keeps the written calibration
+            hit = re.search(r"Landmark l(\d+) behind", str(e))
+            if hit is None or int(hit.group(1)) not in rows or dropped >= cfg.max_dropped:
+                return keep(f"the adjustment failed ({e})")
+            for i in rows.pop(int(hit.group(1))):
+                graph.remove(i)
+            vals.erase(L(int(hit.group(1))))
+            dropped += 1
+    n_obs = sum(len(v) for v in rows.values())
+    report["dropped_landmarks"] = dropped
+    k = res.atCal3DS2(K(0))
+    refined = [k.fx(), k.fy(), k.px(), k.py(), k.k1(), k.k2(), k.p1(), k.p2()]
+    t_m = time.perf_counter()
+    try:  # the estimate's standard deviations (the Gaussian approximation at the optimum)
+        sd = np.sqrt(np.diag(gtsam.Marginals(graph, res).marginalCovariance(K(0))))
+        report["std"] = {
+            "focal_rel": [round(float(sd[0] / refined[0]), 6), round(float(sd[1] / refined[1]), 6)],
+            "principal_px": [round(float(sd[3]), 4), round(float(sd[4]), 4)],
+        }
+    except RuntimeError:
+        report["std"] = None
+    log.debug("intrinsics: marginals %.2f s", time.perf_counter() - t_m)
+    report["marginals_s"] = round(time.perf_counter() - t_m, 3)
+    report.update(
+        estimated=[round(float(v), 6) for v in refined],
+        observations=n_obs,
+        error_before=round(float(e0), 1),
+        error_after=round(float(graph.error(res)), 1),
+        focal_change_rel=[round(refined[i] / written[i] - 1.0, 6) for i in (0, 1)],
+        principal_change_px=[round(refined[i] - written[i], 4) for i in (2, 3)],
+    )
+    if not np.isfinite(refined).all():
+        return keep("the adjustment returned a non-finite calibration")
+    if max(abs(v) for v in report["focal_change_rel"]) > cfg.max_focal_change_rel:
+        return keep(f"focal lengths changed by more than {cfg.max_focal_change_rel:.0%}")
+    if max(abs(v) for v in report["principal_change_px"]) > cfg.max_principal_change_px:
+        return keep(f"principal point moved by more than {cfg.max_principal_change_px:g} px")
+    out = replace(
+        camera,
+        fx=float(refined[0]),
+        fy=float(refined[1]),
+        cx=float(refined[2]),
+        cy=float(refined[3]),
+        dist=tuple(float(v) for v in refined[4:]),
+    )
+    report["seconds"] = round(time.perf_counter() - t0, 3)
+    log.info(
+        "intrinsics: refined over %d frames, %d landmarks: fx %+.2f %%, fy %+.2f %%, cx %+.2f px, cy %+.2f px",
+        sel.size,
+        int(good.sum()),
+        100 * report["focal_change_rel"][0],
+        100 * report["focal_change_rel"][1],
+        *report["principal_change_px"],
+    )
+    return IntrinsicsResult(out, True, report)

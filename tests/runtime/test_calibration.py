@@ -1,0 +1,97 @@
+"""The intrinsics refinement (runtime.calibration): known answers on exact synthetic features and IMU."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from runtime.backend.imu import ImuStream
+from runtime.calibration import IntrinsicsConfig, refine_intrinsics, tracks_from_features
+from runtime.frontend.tracking import FrameFeatures
+from runtime.geometry import so3_exp
+from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, FakeTracker, ImuNoise, Motion, make_imu, room_points
+
+T0 = 10**9
+
+
+def _first_pass(written, seconds=6.0, sigma_px=0.3, seed=1):
+    """Features as the front end would give them with the ``written`` camera (raw pixels of the true camera,
+    normalised with the written one), the exact IMU, and poses off the truth by a few mm and mrad."""
+    m = Motion(seed=seed, t_rest=0.0, t_ramp=0.3, amp=1.0, rate=0.6)
+    ts, g, a = make_imu(m, seconds + 0.2, t0_ns=T0)
+    imu = ImuStream(ts, g, a, 200.0)
+    trk = FakeTracker(EUROC_CAM, EUROC_T_BS, room_points(seed=seed), m, T0, sigma_px=sigma_px, seed=seed)
+    feats = []
+    frame_ts = T0 + np.arange(0, int(seconds * 20) + 1) * 50_000_000
+    for f in frame_ts:
+        trk.track(int(f), None)
+        t = trk.replenish(int(f), None)
+        xn = written.pixel_to_normalized(t.uv)
+        feats.append(FrameFeatures(t.ts, t.ids, t.uv, xn, t.uv_u, 0.0, 0, 0))
+    rng = np.random.default_rng(seed)
+    T = m.body((frame_ts - T0) * 1e-9)
+    for k in range(len(T)):
+        T[k, :3, :3] = T[k, :3, :3] @ so3_exp(rng.normal(0, 2e-3, 3))
+        T[k, :3, 3] += rng.normal(0, 5e-3, 3)
+    return imu, feats, frame_ts, T
+
+
+def _refine(written, cfg=None, **kw):
+    imu, feats, ts, T = _first_pass(written, **kw)
+    return refine_intrinsics(written, EUROC_T_BS, ImuNoise(), imu, feats, ts, T, None, cfg or IntrinsicsConfig())
+
+
+def test_a_wrong_calibration_is_recovered():
+    d = EUROC_CAM.dist
+    written = replace(
+        EUROC_CAM,
+        fx=EUROC_CAM.fx * 1.010,
+        fy=EUROC_CAM.fy * 0.992,
+        cx=EUROC_CAM.cx + 1.5,
+        cy=EUROC_CAM.cy - 1.0,
+        dist=(d[0] * 1.03, d[1], d[2], d[3]),
+    )
+    res = _refine(written)
+    assert res.accepted, res.report
+    cam = res.camera
+    assert abs(cam.fx / EUROC_CAM.fx - 1) < 1e-3 and abs(cam.fy / EUROC_CAM.fy - 1) < 1e-3, res.report
+    # the principal point, weakly seen, moves towards the truth (written 1.8 px off)
+    assert np.hypot(cam.cx - EUROC_CAM.cx, cam.cy - EUROC_CAM.cy) < 0.7 * np.hypot(1.5, 1.0), res.report
+    assert abs(cam.dist[0] / d[0] - 1) < 0.015, res.report  # written: 3 % off
+    assert res.report["focal_change_rel"][0] < -0.008 and res.report["focal_change_rel"][1] > 0.006
+    assert res.report["error_after"] < res.report["error_before"]
+
+
+def test_a_right_calibration_stays_where_it_is():
+    res = _refine(EUROC_CAM)
+    assert res.accepted
+    assert max(abs(v) for v in res.report["focal_change_rel"]) < 1e-3
+
+
+def test_too_little_data_keeps_the_written_calibration():
+    res = _refine(EUROC_CAM, cfg=IntrinsicsConfig(min_frames=100), seconds=2.0)
+    assert not res.accepted and res.camera is EUROC_CAM
+    assert "fewer than 100" in res.report["reason"]
+    fish = replace(EUROC_CAM, model="equidistant")
+    res = refine_intrinsics(fish, EUROC_T_BS, ImuNoise(), None, [], np.zeros(0), np.zeros((0, 4, 4)), None)
+    assert not res.accepted and "radial-tangential only" in res.report["reason"]
+
+
+def test_tracks_are_gathered_on_the_adjustment_frames_in_raw_pixels():
+    imu, feats, ts, T = _first_pass(EUROC_CAM, seconds=1.0, sigma_px=0.0)
+    sel = ts[::3]
+    tracks, xn = tracks_from_features(EUROC_CAM, feats, sel, 3)
+    assert tracks and all(len(t) >= 3 for t in tracks)
+    by_ts = {int(f.ts): f for f in feats}
+    n, q = tracks[0][0]
+    f = by_ts[int(sel[n])]
+    # the raw pixel comes back from the normalised coordinate: it is one of the frame's pixels
+    assert np.min(np.linalg.norm(f.uv - q, axis=1)) < 1e-6
+    assert xn[0].shape == (len(tracks[0]), 2)
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="seconds"):
+        IntrinsicsConfig(seconds=0)
+    with pytest.raises(ValueError, match="pixel_sigma"):
+        IntrinsicsConfig(pixel_sigma=0)

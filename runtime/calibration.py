@@ -28,8 +28,10 @@ pinhole camera of an undistorted view); an equidistant (fisheye) model keeps its
 from __future__ import annotations
 
 import logging
-import re
+import os
+import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -60,7 +62,6 @@ class IntrinsicsConfig:
     max_focal_change_rel: float = 0.05  # a larger change is taken for a failure: keep the written calibration
     max_principal_change_px: float = 30.0
     iterations: int = 50  # LM iterations
-    max_dropped: int = 50  # landmarks LM may move behind a camera (each dropped, the solve restarted)
 
     def for_system(self, dense: bool) -> bool:
         """Whether the sparse (``dense=False``) or the dense system refines the intrinsics."""
@@ -118,6 +119,35 @@ def tracks_from_features(camera, features: list, frame_ts: np.ndarray, min_views
                 views.setdefault(int(i), []).append((n, q.astype(np.float64), x.astype(np.float64)))
     tracks = [v for v in views.values() if len(v) >= min_views]
     return [[(n, q) for n, q, _ in v] for v in tracks], [np.array([x for _, _, x in v]) for v in tracks]
+
+
+@contextmanager
+def _cpp_stdout():
+    """Hold back what GTSAM's C++ prints on the process's stdout (file descriptor 1) while the block runs, and count
+    its lines. ``GeneralSFMFactor2`` prints "CheiralityException: Landmark lN behind Camera cM" for every
+    observation of a landmark that an LM step put behind a camera (and gives that observation zero error and
+    Jacobians), thousands of lines in a poor step. Yields a one-element list holding the count afterwards."""
+    import ctypes
+    import tempfile
+
+    count = [0]
+    sys.stdout.flush()
+    libc = ctypes.CDLL(None)
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 1)
+        try:
+            yield count
+        finally:
+            libc.fflush(None)
+            os.dup2(saved, 1)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace")
+            count[0] = text.count("behind Camera")
+            other = [ln for ln in text.splitlines() if ln.strip() and "behind Camera" not in ln]
+            if other:
+                log.info("intrinsics: GTSAM printed: %s", " | ".join(other[:5]))
 
 
 def _initial_landmarks(tracks_xn: list, frames: list, T_w_c: np.ndarray, focal: float):
@@ -231,36 +261,31 @@ def refine_intrinsics(
     pix = gtsam.noiseModel.Robust.Create(
         M.Huber.Create(cfg.huber_k), gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
     )
-    rows: dict[int, list[int]] = {}  # landmark -> its factors' indices in the graph
+    n_obs = 0
     for m in np.flatnonzero(good):
         vals.insert(L(int(m)), X_l[m])
-        rows[int(m)] = list(range(graph.size(), graph.size() + len(tracks[m])))
         for n, q in tracks[m]:
             graph.add(gtsam.GeneralSFMFactor2Cal3DS2(q, pix, C(int(n)), L(int(m)), K(0)))
+            n_obs += 1
     lp = gtsam.LevenbergMarquardtParams()
     lp.setMaxIterations(int(cfg.iterations))
-    e0 = graph.error(vals)
-    res, dropped = None, 0
-    while res is None:
+    with _cpp_stdout() as behind:
+        e0 = graph.error(vals)
         try:
             res = gtsam.LevenbergMarquardtOptimizer(graph, vals, lp).optimize()
-        except RuntimeError as e:
-            # a landmark that LM moved behind a camera is dropped and the solve started again; anything else (an
-            # indeterminant system) keeps the written calibration
-            hit = re.search(r"Landmark l(\d+) behind", str(e))
-            if hit is None or int(hit.group(1)) not in rows or dropped >= cfg.max_dropped:
-                return keep(f"the adjustment failed ({e})")
-            for i in rows.pop(int(hit.group(1))):
-                graph.remove(i)
-            vals.erase(L(int(hit.group(1))))
-            dropped += 1
-    n_obs = sum(len(v) for v in rows.values())
-    report["dropped_landmarks"] = dropped
+            e1 = graph.error(res)
+        except RuntimeError as e:  # an indeterminant system: too little of the data constrains some variable
+            res = e
+    report["behind_camera_evaluations"] = behind[0]
+    if isinstance(res, RuntimeError):
+        return keep(f"the adjustment failed ({res})")
     k = res.atCal3DS2(K(0))
     refined = [k.fx(), k.fy(), k.px(), k.py(), k.k1(), k.k2(), k.p1(), k.p2()]
     t_m = time.perf_counter()
     try:  # the estimate's standard deviations (the Gaussian approximation at the optimum)
-        sd = np.sqrt(np.diag(gtsam.Marginals(graph, res).marginalCovariance(K(0))))
+        with _cpp_stdout():
+            cov = gtsam.Marginals(graph, res).marginalCovariance(K(0))
+        sd = np.sqrt(np.diag(cov))
         report["std"] = {
             "focal_rel": [round(float(sd[0] / refined[0]), 6), round(float(sd[1] / refined[1]), 6)],
             "principal_px": [round(float(sd[3]), 4), round(float(sd[4]), 4)],
@@ -273,7 +298,7 @@ def refine_intrinsics(
         estimated=[round(float(v), 6) for v in refined],
         observations=n_obs,
         error_before=round(float(e0), 1),
-        error_after=round(float(graph.error(res)), 1),
+        error_after=round(float(e1), 1),
         focal_change_rel=[round(refined[i] / written[i] - 1.0, 6) for i in (0, 1)],
         principal_change_px=[round(refined[i] - written[i], 4) for i in (2, 3)],
     )

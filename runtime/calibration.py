@@ -269,6 +269,16 @@ def refine_intrinsics(
             n_obs += 1
     lp = gtsam.LevenbergMarquardtParams()
     lp.setMaxIterations(int(cfg.iterations))
+    # the elimination order: landmarks, then each frame's C, X, V, B in time, the calibration last. GTSAM's COLAMD
+    # order took 24 s for 4 LM steps on textured s0 (long tracks), this one 0.6 s, with the same optimum
+    order = gtsam.Ordering()
+    for m in np.flatnonzero(good):
+        order.push_back(L(int(m)))
+    for n in range(fts.size):
+        for key in (C(n), X(n), V(n), B(n)):
+            order.push_back(key)
+    order.push_back(K(0))
+    lp.setOrdering(order)
     with _cpp_stdout() as behind:
         e0 = graph.error(vals)
         try:

@@ -198,6 +198,7 @@ def refine_intrinsics(
     """
     import gtsam
     from gtsam.symbol_shorthand import B, C, K, L, V, X
+    from scipy.linalg import solve_triangular
 
     from runtime.backend.imu import integrate, preintegration_params
 
@@ -292,16 +293,29 @@ def refine_intrinsics(
     k = res.atCal3DS2(K(0))
     refined = [k.fx(), k.fy(), k.px(), k.py(), k.k1(), k.k2(), k.p1(), k.p2()]
     t_m = time.perf_counter()
-    try:  # the estimate's standard deviations (the Gaussian approximation at the optimum)
+    try:  # the estimate's standard deviations: the Gaussian approximation at the optimum, eliminated in the solve's
+        # order, whose last conditional is the calibration's marginal (gtsam.Marginals' own order can fail here on
+        # the 1e-6 ties: an indeterminant system near a camera pose)
+        # a landmark whose every view LM put behind its camera has zero Jacobians (module docstring): a weak prior
+        # (1 km) keeps the linear system determinate without moving the calibration's marginal
+        held = gtsam.NonlinearFactorGraph(graph)
+        far = gtsam.noiseModel.Isotropic.Sigma(3, 1e3)
+        for m in np.flatnonzero(good):
+            held.add(gtsam.PriorFactorPoint3(L(int(m)), res.atPoint3(L(int(m))), far))
         with _cpp_stdout():
-            cov = gtsam.Marginals(graph, res).marginalCovariance(K(0))
-        sd = np.sqrt(np.diag(cov))
+            bn = held.linearize(res).eliminateSequential(order)
+        last = bn.at(bn.size() - 1)  # p(K): R K = d with the model's sigmas (GTSAM keeps R's diagonal at 1)
+        model = last.get_model()
+        sig = model.sigmas() if model is not None else np.ones(9)
+        R_inv = solve_triangular(last.R() / sig[:, None], np.eye(9))  # covariance R^-1 R^-T, by rows: the held
+        sd = np.sqrt(np.sum(R_inv**2, axis=1))  # skew makes R^T R too ill-conditioned to invert as a whole
         report["std"] = {
             "focal_rel": [round(float(sd[0] / refined[0]), 6), round(float(sd[1] / refined[1]), 6)],
             "principal_px": [round(float(sd[3]), 4), round(float(sd[4]), 4)],
         }
-    except RuntimeError:
+    except (RuntimeError, np.linalg.LinAlgError) as e:
         report["std"] = None
+        log.warning("intrinsics: no standard deviations (%s)", e)
     log.debug("intrinsics: marginals %.2f s", time.perf_counter() - t_m)
     report["marginals_s"] = round(time.perf_counter() - t_m, 3)
     report.update(

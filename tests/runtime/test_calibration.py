@@ -60,6 +60,10 @@ def test_a_wrong_calibration_is_recovered():
     assert abs(cam.dist[0] / d[0] - 1) < 0.015, res.report  # written: 3 % off
     assert res.report["focal_change_rel"][0] < -0.008 and res.report["focal_change_rel"][1] > 0.006
     assert res.report["error_after"] < res.report["error_before"]
+    # the reported standard deviations: below the prior's, and the truth within four of them
+    sd = res.report["std"]["focal_rel"]
+    assert 0 < sd[0] < 0.01 and 0 < sd[1] < 0.01
+    assert abs(cam.fx / EUROC_CAM.fx - 1) < 4 * sd[0] and abs(cam.fy / EUROC_CAM.fy - 1) < 4 * sd[1], res.report
 
 
 def test_a_right_calibration_stays_where_it_is():

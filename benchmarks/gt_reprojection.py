@@ -68,13 +68,9 @@ def klt_tracks(seq, max_len: int = 25, target: int = 300, fb_px: float = 0.3) ->
 def reprojection(tracks_n: list[tuple[np.ndarray, np.ndarray]], T_w_c: np.ndarray, f_px: float) -> dict:
     """Each track triangulated from the camera poses (the runtime's linear triangulation) and its reprojection
     error [px] in every view."""
-    from runtime.frontend.triangulation import triangulate
+    from runtime.frontend.triangulation import stack_views, triangulate
 
-    M, V = len(tracks_n), max((len(fr) for fr, _ in tracks_n), default=1)
-    T = np.tile(np.eye(4), (M, V, 1, 1))
-    xn, mask = np.zeros((M, V, 2)), np.zeros((M, V), bool)
-    for m, (frames, x) in enumerate(tracks_n):
-        T[m, : len(frames)], xn[m, : len(frames)], mask[m, : len(frames)] = T_w_c[frames], x, True
+    T, xn, mask = stack_views(T_w_c, tracks_n)
     X, _, diag = triangulate(T, xn, mask, focal=f_px)
     p_c = np.einsum("mvji,mvj->mvi", T[..., :3, :3], X[:, None, :] - T[..., :3, 3])
     z = np.where(mask, p_c[..., 2], 1.0)

@@ -11,13 +11,13 @@ estimates the intrinsics online for this reason; here they are estimated once, f
 :func:`refine_intrinsics` takes what a first sparse pass over those seconds gives (its per-frame poses and the
 front end's tracks) and solves one Levenberg-Marquardt problem with GTSAM, all factors built in:
 
-* every ``keyframe_step``-th posed frame gets a body state ``X, V, B`` and a camera pose ``C`` tied to it by the
+* every ``frame_step``-th posed frame gets a body state ``X, V, B`` and a camera pose ``C`` tied to it by the
   fixed ``T_b_c`` (``BetweenFactorPose3``, 1e-6 sigma);
 * consecutive frames are linked by ``CombinedImuFactor`` with the first pass's IMU noise (its raise included);
 * each track seen in at least ``min_views`` of these frames is a landmark, observed through
   ``GeneralSFMFactor2Cal3DS2`` on the raw (distorted, rolling-shutter corrected) pixels, with a Huber kernel;
 * the calibration ``K`` (``Cal3DS2``: fx, fy, skew, cx, cy, k1, k2, p1, p2) starts at the written one, with a
-  weak prior on it (skew held at 0);
+  prior at about twice a careful calibration's error (skew held at 0);
 * the first pose is held and the first bias weakly tied to 0 (the gauge).
 
 The result is accepted when the solve used enough landmarks and the change stays within physical bounds; otherwise
@@ -152,22 +152,11 @@ def _cpp_stdout():
 
 def _initial_landmarks(tracks_xn: list, frames: list, T_w_c: np.ndarray, focal: float):
     """Linear triangulation (the runtime's) of each track from the first pass's camera poses."""
-    from runtime.frontend.triangulation import triangulate
+    from runtime.frontend.triangulation import stack_views, triangulate
 
-    M = len(tracks_xn)
-    V = max((len(x) for x in tracks_xn), default=1)
-    T = np.tile(np.eye(4), (M, V, 1, 1))
-    xn, mask = np.zeros((M, V, 2)), np.zeros((M, V), bool)
-    for m, (fr, x) in enumerate(zip(frames, tracks_xn, strict=True)):
-        T[m, : len(fr)], xn[m, : len(fr)], mask[m, : len(fr)] = T_w_c[fr], x, True
-    X, _, diag = triangulate(T, xn, mask, focal=focal)
+    X, _, diag = triangulate(*stack_views(T_w_c, list(zip(frames, tracks_xn, strict=True))), focal=focal)
     good = (diag["min_depth"] >= 0.2) & np.isfinite(X).all(1) & (diag["max_err_px"] < 5.0)
     return X, good
-
-
-def _intrinsics(camera) -> list[float]:
-    d = list(camera.dist) + [0.0] * (4 - len(camera.dist))
-    return [float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), *map(float, d[:4])]
 
 
 def refine_intrinsics(
@@ -204,7 +193,8 @@ def refine_intrinsics(
 
     cfg = cfg or IntrinsicsConfig()
     t0 = time.perf_counter()
-    written = _intrinsics(camera)
+    dist = [*map(float, camera.dist), 0.0, 0.0, 0.0, 0.0][:4]  # radial-tangential: k1, k2, p1, p2
+    written = [*map(float, camera.intrinsics), *dist]
     report: dict = {"written": [round(v, 6) for v in written]}
 
     def keep(reason: str) -> IntrinsicsResult:
@@ -293,11 +283,11 @@ def refine_intrinsics(
     k = res.atCal3DS2(K(0))
     refined = [k.fx(), k.fy(), k.px(), k.py(), k.k1(), k.k2(), k.p1(), k.p2()]
     t_m = time.perf_counter()
-    try:  # the estimate's standard deviations: the Gaussian approximation at the optimum, eliminated in the solve's
-        # order, whose last conditional is the calibration's marginal (gtsam.Marginals' own order can fail here on
-        # the 1e-6 ties: an indeterminant system near a camera pose)
-        # a landmark whose every view LM put behind its camera has zero Jacobians (module docstring): a weak prior
-        # (1 km) keeps the linear system determinate without moving the calibration's marginal
+    # the estimate's standard deviations: the Gaussian approximation at the optimum, eliminated in the solve's order,
+    # whose last conditional is the calibration's marginal (gtsam.Marginals, with its own order, found the system
+    # indeterminant near a camera pose). A landmark whose every view LM put behind its camera has zero Jacobians
+    # (_cpp_stdout): a weak prior (1 km) on each keeps the linear system determinate without moving that marginal
+    try:
         held = gtsam.NonlinearFactorGraph(graph)
         far = gtsam.noiseModel.Isotropic.Sigma(3, 1e3)
         for m in np.flatnonzero(good):
@@ -316,7 +306,6 @@ def refine_intrinsics(
     except (RuntimeError, np.linalg.LinAlgError) as e:
         report["std"] = None
         log.warning("intrinsics: no standard deviations (%s)", e)
-    log.debug("intrinsics: marginals %.2f s", time.perf_counter() - t_m)
     report["marginals_s"] = round(time.perf_counter() - t_m, 3)
     report.update(
         estimated=[round(float(v), 6) for v in refined],

@@ -41,6 +41,25 @@ class TriangulationConfig:
         return chi2_bound(self.pixel_sigma, self.chi2_prob, 2)
 
 
+def stack_views(T_w_c: np.ndarray, tracks: list[tuple[np.ndarray, np.ndarray]]):
+    """The (M, V) arrays of :func:`triangulate` from tracks given as ``(frame indices (V_m,), xn (V_m, 2))`` into
+    the poses ``T_w_c`` (F, 4, 4); each track's views fill its first ``V_m`` columns.
+
+    Returns:
+        ``(T, xn, mask)``: (M, V, 4, 4), (M, V, 2), (M, V) with V the longest track.
+
+    >>> T, xn, mask = stack_views(np.tile(np.eye(4), (3, 1, 1)), [(np.array([0, 2]), np.ones((2, 2)))])
+    >>> T.shape, xn.shape, mask.tolist()
+    ((1, 2, 4, 4), (1, 2, 2), [[True, True]])
+    """
+    M, V = len(tracks), max((len(fr) for fr, _ in tracks), default=1)
+    T = np.tile(np.eye(4), (M, V, 1, 1))
+    xn, mask = np.zeros((M, V, 2)), np.zeros((M, V), bool)
+    for m, (frames, x) in enumerate(tracks):
+        T[m, : len(frames)], xn[m, : len(frames)], mask[m, : len(frames)] = T_w_c[frames], x, True
+    return T, xn, mask
+
+
 def triangulate(
     T_w_c: np.ndarray,
     xn: np.ndarray,

@@ -7,7 +7,7 @@ import pytest
 from runtime.frontend.features import FeatureConfig, FeatureDetector
 from runtime.frontend.keyframes import KeyframeConfig, KeyframeSelector, rotation_compensated_parallax
 from runtime.frontend.tracking import FeatureTracker, TrackerConfig
-from runtime.frontend.triangulation import TriangulationConfig, triangulate
+from runtime.frontend.triangulation import TriangulationConfig, stack_views, triangulate
 from runtime.geometry import Camera, inv_T, make_T, so3_exp
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS
 
@@ -50,6 +50,19 @@ def test_triangulation_known_answer_multiview():
     P, ok, _ = triangulate(np.broadcast_to(Ts, (M, V, 4, 4)), xn_noisy, mask, focal=458.0)
     assert ok.mean() > 0.9
     assert np.median(np.linalg.norm(P - X, axis=1)) < 0.03
+
+
+def test_tracks_of_different_lengths_stack_into_the_triangulation_arrays():
+    rng = np.random.default_rng(1)
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], (6, 3))
+    centres = np.array([[0, 0, 0], [0.3, 0, 0], [0.6, 0.1, 0], [0.9, 0.0, 0.1]], float)
+    Ts, xn, _ = _views(X, centres)
+    frames = [np.array([0, 1, 2, 3]), np.array([1, 3]), np.array([0, 2, 3]), np.array([3, 0]), [1, 2], [0, 1]]
+    T, x, mask = stack_views(Ts, [(np.asarray(f), xn[m, f]) for m, f in enumerate(frames)])
+    assert T.shape == (6, 4, 4, 4) and mask.sum(1).tolist() == [4, 2, 3, 2, 2, 2]
+    assert np.array_equal(T[3, 0], Ts[3]) and np.array_equal(x[3, 1], xn[3, 0]) and not mask[1, 2:].any()
+    P, ok, _ = triangulate(T, x, mask, focal=458.0)
+    assert ok.all() and np.abs(P - X).max() < 1e-8
 
 
 def test_triangulation_rejects_low_parallax_and_points_behind():

@@ -192,25 +192,12 @@ def _make_mapper(seq, dense, model_dir, depth_source, probe):
     return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
-class _Recalibrated:
-    """A sequence seen with another camera model (the refined intrinsics); every other attribute is the wrapped
-    sequence's."""
-
-    def __init__(self, seq, camera) -> None:
-        self.seq, self.camera = seq, camera
-
-    def __getattr__(self, name):
-        return getattr(self.seq, name)
-
-    def __len__(self) -> int:
-        return len(self.seq)
-
-
 def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, dense: bool) -> tuple[object, dict]:
     """A first sparse pass over ``cfg.intrinsics.seconds`` of the sequence and the bundle adjustment of
     :func:`runtime.calibration.refine_intrinsics`; returns the sequence seen with the refined camera (or as it is)
     and the report for ``metrics.json``."""
     from runtime.calibration import refine_intrinsics
+    from runtime.io.sequence import CameraView
 
     c = cfg.intrinsics
     if not c.for_system(dense):
@@ -239,7 +226,7 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, dense
     )
     report = {"refined": res.accepted, "first_pass_frames": n1, **res.report}
     report["seconds_total"] = round(time.perf_counter() - t0, 3)
-    return (_Recalibrated(seq, res.camera) if res.accepted else seq), report
+    return (CameraView(seq, res.camera) if res.accepted else seq), report
 
 
 def _run_frames(

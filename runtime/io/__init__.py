@@ -25,7 +25,7 @@ from runtime.io.euroc import (
 )
 from runtime.io.nyu import NYU_HW, NyuFormatError, NyuLabeledMat, list_nyu_h5, read_nyu_h5, read_nyu_split
 from runtime.io.ply import PlyFormatError, read_ply, read_ply_faces, read_ply_normals, read_ply_vertex, write_ply
-from runtime.io.sequence import PinholeView, open_sequence
+from runtime.io.sequence import CameraView, PinholeView, open_sequence
 from runtime.io.tum import TumFormatError, read_tum, write_tum
 
 __all__ = [
@@ -36,6 +36,7 @@ __all__ = [
     "Calibration",
     "read_calibration",
     "read_kalibr",
+    "CameraView",
     "PinholeView",
     "open_sequence",
     "DEPTH_SCALE",

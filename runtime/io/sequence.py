@@ -22,10 +22,28 @@ from runtime.io.euroc import read_euroc
 
 log = logging.getLogger(__name__)
 
-__all__ = ["open_sequence", "PinholeView"]
+__all__ = ["open_sequence", "CameraView", "PinholeView"]
 
 
-class PinholeView:
+class CameraView:
+    """A sequence seen with another camera model (e.g. the intrinsics ``dit-slam`` refined, :mod:`runtime.calibration`);
+    every other attribute is the wrapped sequence's."""
+
+    def __init__(self, seq, camera: Camera) -> None:
+        self.seq = seq
+        self.camera = camera
+
+    def __getattr__(self, name):
+        return getattr(self.seq, name)
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.seq!r})"
+
+
+class PinholeView(CameraView):
     """A fisheye sequence seen through the pinhole camera with the same ``K`` (images resampled with
     :meth:`runtime.geometry.Camera.undistort_image`; rays beyond the fisheye's image are black).
 
@@ -36,18 +54,8 @@ class PinholeView:
     def __init__(self, seq):
         if not seq.camera.is_fisheye:
             raise ValueError(f"PinholeView is for fisheye cameras, got model {seq.camera.model!r}")
-        self.seq = seq
+        super().__init__(seq, seq.camera.pinhole())
         self.fisheye: Camera = seq.camera
-        self.camera: Camera = seq.camera.pinhole()
-
-    def __getattr__(self, name):
-        return getattr(self.seq, name)
-
-    def __len__(self) -> int:
-        return len(self.seq)
-
-    def __repr__(self) -> str:
-        return f"PinholeView({self.seq!r})"
 
     def image(self, i: int) -> np.ndarray:
         return self.fisheye.undistort_image(self.seq.image(i))

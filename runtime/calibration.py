@@ -62,6 +62,9 @@ class IntrinsicsConfig:
     max_focal_change_rel: float = 0.05  # a larger change is taken for a failure: keep the written calibration
     max_principal_change_px: float = 30.0
     iterations: int = 50  # LM iterations
+    time_offset: bool = False  # also estimate the camera-IMU time offset in the same solve, and apply it
+    time_offset_prior_s: float = 0.02  # [s] prior sigma of the offset (around 0)
+    max_time_offset_s: float = 0.05  # a larger estimate is taken for a failure: keep the stamps as written
 
     def for_system(self, dense: bool) -> bool:
         """Whether the sparse (``dense=False``) or the dense system refines the intrinsics."""
@@ -79,6 +82,8 @@ class IntrinsicsConfig:
             "radial_prior_rel",
             "radial_prior_min",
             "tangential_prior",
+            "time_offset_prior_s",
+            "max_time_offset_s",
         ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"intrinsics.{name}={getattr(self, name)}: must be > 0")
@@ -87,11 +92,13 @@ class IntrinsicsConfig:
 @dataclass
 class IntrinsicsResult:
     """``camera``: the refined camera when ``accepted``, else the written one; ``report``: figures for
-    ``metrics.json`` (written and refined intrinsics, counts, the reason when not accepted)."""
+    ``metrics.json`` (written and refined intrinsics, counts, the reason when not accepted); ``time_offset_ns``:
+    the camera-IMU time offset to add to the camera's stamps (0 unless estimated and accepted)."""
 
     camera: object
     accepted: bool
     report: dict
+    time_offset_ns: int = 0
 
 
 def tracks_from_features(camera, features: list, frame_ts: np.ndarray, min_views: int) -> tuple[list, np.ndarray]:
@@ -150,6 +157,13 @@ def _cpp_stdout():
                 log.info("intrinsics: GTSAM printed: %s", " | ".join(other[:5]))
 
 
+def _whitened_R(cond) -> np.ndarray:
+    """A Gaussian conditional's R with its rows divided by the noise model's sigmas (GTSAM keeps R's diagonal 1)."""
+    model = cond.get_model()
+    R = np.asarray(cond.R(), dtype=np.float64)
+    return R / (model.sigmas()[:, None] if model is not None else 1.0)
+
+
 def _initial_landmarks(tracks_xn: list, frames: list, T_w_c: np.ndarray, focal: float):
     """Linear triangulation (the runtime's) of each track from the first pass's camera poses."""
     from runtime.frontend.triangulation import stack_views, triangulate
@@ -157,6 +171,94 @@ def _initial_landmarks(tracks_xn: list, frames: list, T_w_c: np.ndarray, focal: 
     X, _, diag = triangulate(*stack_views(T_w_c, list(zip(frames, tracks_xn, strict=True))), focal=focal)
     good = (diag["min_depth"] >= 0.2) & np.isfinite(X).all(1) & (diag["max_err_px"] < 5.0)
     return X, good
+
+
+def body_rates(traj_ts: np.ndarray, traj_T: np.ndarray, sel: np.ndarray, imu=None) -> np.ndarray:
+    """The body's angular rate at the posed frames ``sel`` of a trajectory.
+
+    The rate over the interval between a frame's neighbours is the trajectory's rotation over it; with ``imu`` it
+    is the gyroscope's mean over the same interval less the gyroscope's bias, taken as the median over the frames
+    of that mean less the trajectory's rate. A rate differenced from estimated poses carries their noise, and a
+    time offset fitted against a noisy rate comes out too small (errors in the regressor); the gyroscope's is far
+    less noisy.
+
+    Args:
+        traj_ts: (N,) stamps [ns]; traj_T: (N, 4, 4) body poses ``T_w_b``; sel: (F,) indices into them.
+        imu: an :class:`runtime.backend.imu.ImuStream`, or None.
+
+    Returns:
+        (F, 3) angular rate [rad/s] in the body frame (central differences, one-sided at the ends).
+
+    >>> from runtime.geometry import so3_exp
+    >>> ts = np.arange(3) * 50_000_000
+    >>> T = np.repeat(np.eye(4)[None], 3, 0); T[:, :3, :3] = [so3_exp(np.array([0, 0, 0.05 * k])) for k in range(3)]
+    >>> body_rates(ts, T, np.array([1])).round(6).tolist()
+    [[0.0, 0.0, 1.0]]
+    """
+    from runtime.geometry import so3_log
+
+    traj_ts = np.asarray(traj_ts, dtype=np.int64)
+    traj_T = np.asarray(traj_T, dtype=np.float64)
+    n = traj_ts.size
+    out = np.zeros((len(sel), 3))
+    gyro = np.full((len(sel), 3), np.nan)
+    for k, i in enumerate(np.asarray(sel, dtype=np.int64)):
+        a, b = max(int(i) - 1, 0), min(int(i) + 1, n - 1)
+        dt = (traj_ts[b] - traj_ts[a]) * 1e-9
+        if b == a or not dt > 0:
+            continue
+        out[k] = so3_log(traj_T[a, :3, :3].T @ traj_T[b, :3, :3]) / dt
+        if imu is not None:
+            g, _, h = imu.segment(int(traj_ts[a]), int(traj_ts[b]))
+            if h.sum() > 0:
+                gyro[k] = (g * h[:, None]).sum(0) / h.sum()
+    have = np.isfinite(gyro).all(1)
+    if have.any():
+        out[have] = gyro[have] - np.median(gyro[have] - out[have], axis=0)
+    return out
+
+
+def timed_camera_tie(noise, key_X: int, key_V: int, key_C: int, key_d: int, omega: np.ndarray, T_b_c):
+    """A factor tying camera pose ``C`` to body state ``X, V`` through the camera-IMU time offset ``d``.
+
+    The image stamped ``t`` was taken at ``t + d`` on the IMU's clock, where the body pose is, to first order in
+    ``d``, ``X Exp(d xi)`` with the body's twist ``xi = [omega, R_X^T V]`` (``omega`` the body's angular rate at
+    ``t``, :func:`body_rates`; the velocity is the state's own). The factor's error is
+    ``Log((Exp(d xi) T_b_c)^-1 X^-1 C)`` (6,), with exact Jacobians with respect to ``X``, ``V``, ``C`` (GTSAM's
+    retractions) and ``d`` (a ``Vector`` of size 1, seconds).
+
+    Args:
+        noise: 6-D noise model; key_X, key_V, key_C, key_d: GTSAM keys; omega: (3,) [rad/s];
+        T_b_c: ``gtsam.Pose3`` of the camera in the body frame.
+    """
+    import gtsam
+
+    from runtime.backend.factors import custom_factor
+    from runtime.geometry import skew
+
+    omega = np.asarray(omega, dtype=np.float64).reshape(3)
+    Ad_cb = T_b_c.inverse().AdjointMap()
+
+    def error_fn(values, jac: bool):
+        Xp, Cp = values.atPose3(key_X), values.atPose3(key_C)
+        v_w, d = np.asarray(values.atVector(key_V), np.float64), float(values.atVector(key_d)[0])
+        R = Xp.rotation().matrix()
+        xi = np.concatenate([omega, R.T @ v_w])
+        M = gtsam.Pose3.Expmap(d * xi).compose(T_b_c)
+        E = M.inverse().compose(Xp.inverse()).compose(Cp)
+        e = gtsam.Pose3.Logmap(E)
+        if not jac:
+            return e, None
+        J = np.linalg.inv(gtsam.Pose3.ExpmapDerivative(e))  # Log(E Exp(s)) ~ e + J s
+        G = -J @ E.inverse().AdjointMap() @ Ad_cb  # a change s of M's twist in the body, M Exp(Ad_cb s)
+        dxi = np.zeros((6, 9))  # d(d xi) / d[X (6), V (3)] through the velocity R^T v
+        dxi[3:, :3] = d * skew(xi[3:])
+        dxi[3:, 6:] = d * R.T
+        D = G @ gtsam.Pose3.ExpmapDerivative(d * xi) @ dxi
+        H_X = -J @ Cp.inverse().compose(Xp).AdjointMap() + D[:, :6]
+        return e, [H_X, D[:, 6:], J, (G @ xi).reshape(6, 1)]
+
+    return custom_factor(noise, [key_X, key_V, key_C, key_d], error_fn, [6, 3, 6, 1])
 
 
 def refine_intrinsics(
@@ -186,7 +288,7 @@ def refine_intrinsics(
         The refined camera (or the written one, with the reason in ``report["reason"]``).
     """
     import gtsam
-    from gtsam.symbol_shorthand import B, C, K, L, V, X
+    from gtsam.symbol_shorthand import B, C, D, K, L, V, X
     from scipy.linalg import solve_triangular
 
     from runtime.backend.imu import integrate, preintegration_params
@@ -234,12 +336,24 @@ def refine_intrinsics(
     tie = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
     T_bc = gtsam.Pose3(np.asarray(T_b_c, dtype=np.float64))
     zero = gtsam.imuBias.ConstantBias()
+    if cfg.time_offset:  # the camera poses at the images' true times: C = X Exp(d xi) T_b_c, d a variable
+        omega = body_rates(traj_ts, traj_T, sel, imu)
+        # looser than the fixed tie: with the offset and the velocity in it, an LM step leaves second-order
+        # misfits (offset x velocity change) that 1e-6 turned into errors no step could lower
+        timed_tie = gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)
+        vals.insert(D(0), np.zeros(1))
+        graph.add(
+            gtsam.PriorFactorVector(D(0), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, cfg.time_offset_prior_s))
+        )
     for n in range(fts.size):
         vals.insert(X(n), gtsam.Pose3(T_w_b[n]))
         vals.insert(V(n), vel[n])
         vals.insert(B(n), zero)
         vals.insert(C(n), gtsam.Pose3(T_w_c[n]))
-        graph.add(gtsam.BetweenFactorPose3(X(n), C(n), T_bc, tie))
+        if cfg.time_offset:
+            graph.add(timed_camera_tie(timed_tie, X(n), V(n), C(n), D(0), omega[n], T_bc))
+        else:
+            graph.add(gtsam.BetweenFactorPose3(X(n), C(n), T_bc, tie))
         if n:
             pim = gtsam.PreintegratedCombinedMeasurements(params, zero)
             integrate(pim, *imu.segment(int(fts[n - 1]), int(fts[n])))
@@ -260,14 +374,16 @@ def refine_intrinsics(
             n_obs += 1
     lp = gtsam.LevenbergMarquardtParams()
     lp.setMaxIterations(int(cfg.iterations))
-    # the elimination order: landmarks, then each frame's C, X, V, B in time, the calibration last. GTSAM's COLAMD
-    # order took 24 s for 4 LM steps on textured s0 (long tracks), this one 0.6 s, with the same optimum
+    # the elimination order: landmarks, then each frame's C, X, V, B in time, the time offset, the calibration last.
+    # GTSAM's COLAMD order took 24 s for 4 LM steps on textured s0 (long tracks), this one 0.6 s, same optimum
     order = gtsam.Ordering()
     for m in np.flatnonzero(good):
         order.push_back(L(int(m)))
     for n in range(fts.size):
         for key in (C(n), X(n), V(n), B(n)):
             order.push_back(key)
+    if cfg.time_offset:
+        order.push_back(D(0))
     order.push_back(K(0))
     lp.setOrdering(order)
     with _cpp_stdout() as behind:
@@ -295,14 +411,20 @@ def refine_intrinsics(
         with _cpp_stdout():
             bn = held.linearize(res).eliminateSequential(order)
         last = bn.at(bn.size() - 1)  # p(K): R K = d with the model's sigmas (GTSAM keeps R's diagonal at 1)
-        model = last.get_model()
-        sig = model.sigmas() if model is not None else np.ones(9)
-        R_inv = solve_triangular(last.R() / sig[:, None], np.eye(9))  # covariance R^-1 R^-T, by rows: the held
+        R_inv = solve_triangular(_whitened_R(last), np.eye(9))  # covariance R^-1 R^-T, by rows: the held
         sd = np.sqrt(np.sum(R_inv**2, axis=1))  # skew makes R^T R too ill-conditioned to invert as a whole
         report["std"] = {
             "focal_rel": [round(float(sd[0] / refined[0]), 6), round(float(sd[1] / refined[1]), 6)],
             "principal_px": [round(float(sd[3]), 4), round(float(sd[4]), 4)],
         }
+        if cfg.time_offset:  # p(d | K) p(K): the joint's upper-triangular factor, d's row first
+            cond = bn.at(bn.size() - 2)
+            sd_ = cond.get_model().sigmas() if cond.get_model() is not None else np.ones(1)
+            A = np.zeros((10, 10))
+            A[0, 0], A[0, 1:] = cond.R()[0, 0] / sd_[0], cond.S()[0] / sd_[0]
+            A[1:, 1:] = _whitened_R(last)
+            row = solve_triangular(A, np.eye(10))[0]
+            report["std"]["time_offset_s"] = round(float(np.sqrt(np.sum(row**2))), 6)
     except (RuntimeError, np.linalg.LinAlgError) as e:
         report["std"] = None
         log.warning("intrinsics: no standard deviations (%s)", e)
@@ -321,6 +443,11 @@ def refine_intrinsics(
         return keep(f"focal lengths changed by more than {cfg.max_focal_change_rel:.0%}")
     if max(abs(v) for v in report["principal_change_px"]) > cfg.max_principal_change_px:
         return keep(f"principal point moved by more than {cfg.max_principal_change_px:g} px")
+    d = float(res.atVector(D(0))[0]) if cfg.time_offset else 0.0
+    if cfg.time_offset:
+        report["time_offset_s"] = round(d, 6)
+        if not (np.isfinite(d) and abs(d) <= cfg.max_time_offset_s):
+            return keep(f"time offset {d * 1e3:.1f} ms, beyond {cfg.max_time_offset_s * 1e3:g} ms")
     out = replace(
         camera,
         fx=float(refined[0]),
@@ -338,4 +465,6 @@ def refine_intrinsics(
         100 * report["focal_change_rel"][1],
         *report["principal_change_px"],
     )
-    return IntrinsicsResult(out, True, report)
+    if cfg.time_offset:
+        log.info("intrinsics: camera-IMU time offset %+.2f ms (the camera's stamps move by it)", 1e3 * d)
+    return IntrinsicsResult(out, True, report, time_offset_ns=int(round(d * 1e9)))

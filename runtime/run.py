@@ -226,7 +226,7 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, dense
     )
     report = {"refined": res.accepted, "first_pass_frames": n1, **res.report}
     report["seconds_total"] = round(time.perf_counter() - t0, 3)
-    return (CameraView(seq, res.camera) if res.accepted else seq), report
+    return (CameraView(seq, res.camera, res.time_offset_ns) if res.accepted else seq), report
 
 
 def _run_frames(

@@ -26,12 +26,16 @@ __all__ = ["open_sequence", "CameraView", "PinholeView"]
 
 
 class CameraView:
-    """A sequence seen with another camera model (e.g. the intrinsics ``dit-slam`` refined, :mod:`runtime.calibration`);
-    every other attribute is the wrapped sequence's."""
+    """A sequence seen with another camera model (e.g. the intrinsics ``dit-slam`` refined, :mod:`runtime.calibration`)
+    and, with ``time_offset_ns``, its camera's stamps moved onto the IMU's clock (the image stamped ``t`` was taken
+    at ``t + time_offset_ns``); every other attribute is the wrapped sequence's (images and depth by index)."""
 
-    def __init__(self, seq, camera: Camera) -> None:
+    def __init__(self, seq, camera: Camera, time_offset_ns: int = 0) -> None:
         self.seq = seq
         self.camera = camera
+        self.time_offset_ns = int(time_offset_ns)
+        if self.time_offset_ns:
+            self.frame_ts = np.asarray(seq.frame_ts, dtype=np.int64) + np.int64(self.time_offset_ns)
 
     def __getattr__(self, name):
         return getattr(self.seq, name)

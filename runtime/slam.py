@@ -220,13 +220,13 @@ class SlamSystem:
         """
         self.n_frames += 1
         t0 = self._tic()
-        if self.t_first is None and ts >= self.imu.t_start:
+        if self.t_first is None and ts >= self._imu_from():
             self.t_first = ts
         seg = self._imu_since_last_frame(frame_idx, ts)
         if seg is None:
             return None
         gyro, acc, dt, gap, prev = seg
-        since = self.imu.since_last(ts)  # > 0 inside a gap, before the IMU resumes
+        since = self._since_imu(ts)  # > 0 inside a gap, before the IMU resumes
         if self.initialized and max(gap, since) > self.cfg.imu_gap_max_s:
             return self._gap_reset(ts, max(gap, since))
         if self.initialized and since > self.cfg.imu_gap_reinit_s:
@@ -274,10 +274,20 @@ class SlamSystem:
             return self._record(frame_idx, ts, False, status)
         return self._keyframe(frame_idx, ts, image, T_cur, v_pred, why, imu_gap=gap > self.cfg.imu_gap_reinit_s)
 
+    def _imu_from(self) -> int:
+        """The first frame time [ns] with IMU: one sample period before the first sample, whose value is held back
+        over it (as ``ImuStream.segment`` holds every sample over the next period). A camera-IMU time offset
+        moves the first image a few ms before the first sample."""
+        return self.imu.t_start - int(round(1e9 / self.imu.rate_hz))
+
+    def _since_imu(self, ts: int) -> float:
+        """Seconds since the last IMU sample at or before ``ts``; 0 within the period before the first one."""
+        return 0.0 if self._imu_from() <= ts < self.imu.t_start else self.imu.since_last(ts)
+
     def _imu_since_last_frame(self, frame_idx: int, ts: int):
         """``(gyro, accel, dt, gap [s], previous frame ts)`` of the IMU since the last frame, or None when the
-        frame is skipped (before the first IMU sample, or not after the previous frame)."""
-        if ts < self.imu.t_start:
+        frame is skipped (before the first IMU sample's period, or not after the previous frame)."""
+        if ts < self._imu_from():
             if self.prev_ts is None:
                 self.event(ts, "frame before the first IMU sample, skipped", logging.INFO)
             return None
@@ -410,7 +420,7 @@ class SlamSystem:
         c = self.cfg
         if image is None or feats is None:
             return None
-        if self.imu.since_last(ts) > c.imu_gap_reinit_s:  # inside an IMU gap: start afresh after it
+        if self._since_imu(ts) > c.imu_gap_reinit_s:  # inside an IMU gap: start afresh after it
             self.initializer.reset()
             return None
         if self.tracker.n_tracks < c.redetect_ratio * c.features.max_features:

@@ -259,3 +259,21 @@ def test_a_long_imu_gap_gives_no_poses_inside_and_a_new_segment():
         mk = seg == k
         met = ev.trajectory_metrics(ts[mk], T[mk], ts[mk], m.body((ts[mk] - T0) * 1e-9))
         assert met["ate_se3_rmse_m"] < 0.05, (k, met)
+
+
+@pytest.mark.parametrize("lead_ms, first", [(3, 0), (20, 1)])
+def test_a_frame_within_one_imu_period_before_the_first_sample_is_taken(lead_ms, first):
+    """An image a few ms before the IMU's first sample (a camera-IMU time offset moves it there) is processed with
+    that sample held back over it; one further before is skipped, and said so."""
+    m = Motion(seed=0, still=True)
+    ts, g, a = make_imu(m, 3.0, noise=ImuNoise(), seed=0, t0_ns=T0 + lead_ms * 1_000_000)
+    system = SlamSystem(EUROC_CAM, EUROC_T_BS, ImuStream(ts, g, a, 200.0), ImuNoise(), SlamConfig(),
+                        tracker=FakeTracker(EUROC_CAM, EUROC_T_BS, room_points(seed=0), m, T0, seed=0))  # fmt: skip
+    frames = T0 + np.arange(50) * 50_000_000
+    for i, f in enumerate(frames):
+        system.process(i, int(f), IMG)
+    assert system.t_first == frames[first]
+    skipped = [msg for _, msg in system.events if "before the first IMU sample" in msg]
+    assert len(skipped) == first
+    t_traj, _ = system.trajectory()
+    assert t_traj.size > 0 and t_traj[0] == frames[first]  # the frame has its pose

@@ -20,6 +20,13 @@ front end's tracks) and solves one Levenberg-Marquardt problem with GTSAM, all f
   prior at about twice a careful calibration's error (skew held at 0);
 * the first pose is held and the first bias weakly tied to 0 (the gauge).
 
+With ``time_offset`` the same solve also estimates the camera-IMU time offset ``d`` (the image stamped ``t`` was
+taken at ``t + d`` on the IMU's clock), as VINS-Mono and OpenVINS estimate it online: each camera pose is tied to
+its body state through the body's twist, ``C = X Exp(d [omega, R^T v]) T_b_c`` (:func:`timed_camera_tie`), and the
+run then moves the camera's stamps by ``d``. The estimate holds whatever delays the camera and the IMU integration
+have against each other: the IMU factors hold each sample over the next sample period, half a period (2.5 ms at
+200 Hz) behind samples that are instantaneous values.
+
 The result is accepted when the solve used enough landmarks and the change stays within physical bounds; otherwise
 the written calibration is kept and the reason reported. Radial-tangential cameras only (and the distortion-free
 pinhole camera of an undistorted view); an equidistant (fisheye) model keeps its calibration.
@@ -409,7 +416,11 @@ def refine_intrinsics(
         for m in np.flatnonzero(good):
             held.add(gtsam.PriorFactorPoint3(L(int(m)), res.atPoint3(L(int(m))), far))
         with _cpp_stdout():
-            bn = held.linearize(res).eliminateSequential(order)
+            lin = held.linearize(res)
+            try:
+                bn = lin.eliminateSequential(order)
+            except RuntimeError:  # a landmark too poorly conditioned for Cholesky: QR, 6x slower, same figures
+                bn = lin.eliminateSequential(order, gtsam.EliminateQR)
         last = bn.at(bn.size() - 1)  # p(K): R K = d with the model's sigmas (GTSAM keeps R's diagonal at 1)
         R_inv = solve_triangular(_whitened_R(last), np.eye(9))  # covariance R^-1 R^-T, by rows: the held
         sd = np.sqrt(np.sum(R_inv**2, axis=1))  # skew makes R^T R too ill-conditioned to invert as a whole

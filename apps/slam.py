@@ -135,6 +135,22 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"{m['sim3_scale']:.4f}); RPE/{m['rpe_delta_frames']} frames {m['rpe_trans_rmse_m']:.4f} m, "
             f"{m['rpe_rot_rmse_deg']:.3f} deg"
         )
+    intr = m.get("intrinsics") or {}
+    if intr.get("refined"):
+        sd = intr.get("std") or {}
+        td = (
+            f"; camera-IMU time offset {1e3 * intr['time_offset_s']:+.1f} ms"
+            + (f" (sd {1e3 * sd['time_offset_s']:.1f})" if sd.get("time_offset_s") else "")
+            + ", the camera's stamps moved by it"
+            if "time_offset_s" in intr
+            else ""
+        )
+        fx, fy = (100 * v for v in intr["focal_change_rel"])
+        cx, cy = intr["principal_change_px"]
+        lines.append(
+            f"  camera refined over the first {intr['first_pass_frames']} frames: fx {fx:+.2f} %, fy {fy:+.2f} %, "
+            f"cx {cx:+.1f} px, cy {cy:+.1f} px{td}"
+        )
     if m.get("error"):
         lines.append(f"  ERROR: {m['error']}")
     dm = m.get("depth_metrics")

@@ -137,14 +137,11 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
         )
     intr = m.get("intrinsics") or {}
     if intr.get("refined"):
-        sd = intr.get("std") or {}
-        td = (
-            f"; camera-IMU time offset {1e3 * intr['time_offset_s']:+.1f} ms"
-            + (f" (sd {1e3 * sd['time_offset_s']:.1f})" if sd.get("time_offset_s") else "")
-            + ", the camera's stamps moved by it"
-            if "time_offset_s" in intr
-            else ""
-        )
+        td = ""
+        if "time_offset_s" in intr:
+            sd = (intr.get("std") or {}).get("time_offset_s")
+            td = f"; camera-IMU time offset {1e3 * intr['time_offset_s']:+.1f} ms"
+            td += (f" (sd {1e3 * sd:.1f})" if sd else "") + ", the camera's stamps moved by it"
         fx, fy = (100 * v for v in intr["focal_change_rel"])
         cx, cy = intr["principal_change_px"]
         lines.append(

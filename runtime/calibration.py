@@ -71,7 +71,7 @@ class IntrinsicsConfig:
     iterations: int = 50  # LM iterations
     time_offset: bool = False  # also estimate the camera-IMU time offset in the same solve, and apply it
     time_offset_prior_s: float = 0.02  # [s] prior sigma of the offset (around 0)
-    max_time_offset_s: float = 0.05  # a larger estimate is taken for a failure: keep the stamps as written
+    max_time_offset_s: float = 0.05  # a larger estimate is taken for a failure: keep the written calibration and stamps
 
     def for_system(self, dense: bool) -> bool:
         """Whether the sparse (``dense=False``) or the dense system refines the intrinsics."""
@@ -164,11 +164,12 @@ def _cpp_stdout():
                 log.info("intrinsics: GTSAM printed: %s", " | ".join(other[:5]))
 
 
-def _whitened_R(cond) -> np.ndarray:
-    """A Gaussian conditional's R with its rows divided by the noise model's sigmas (GTSAM keeps R's diagonal 1)."""
+def _whitened(cond) -> tuple[np.ndarray, np.ndarray]:
+    """A Gaussian conditional's ``R`` (frontal) and ``S`` (parents) with their rows divided by the noise model's
+    sigmas (GTSAM keeps R's diagonal at 1 and the scale in the model)."""
     model = cond.get_model()
-    R = np.asarray(cond.R(), dtype=np.float64)
-    return R / (model.sigmas()[:, None] if model is not None else 1.0)
+    sig = model.sigmas()[:, None] if model is not None else 1.0
+    return np.asarray(cond.R(), np.float64) / sig, np.asarray(cond.S(), np.float64) / sig
 
 
 def _initial_landmarks(tracks_xn: list, frames: list, T_w_c: np.ndarray, focal: float):
@@ -422,18 +423,17 @@ def refine_intrinsics(
             except RuntimeError:  # a landmark too poorly conditioned for Cholesky: QR, 6x slower, same figures
                 bn = lin.eliminateSequential(order, gtsam.EliminateQR)
         last = bn.at(bn.size() - 1)  # p(K): R K = d with the model's sigmas (GTSAM keeps R's diagonal at 1)
-        R_inv = solve_triangular(_whitened_R(last), np.eye(9))  # covariance R^-1 R^-T, by rows: the held
+        R_K = _whitened(last)[0]
+        R_inv = solve_triangular(R_K, np.eye(9))  # covariance R^-1 R^-T, by rows: the held
         sd = np.sqrt(np.sum(R_inv**2, axis=1))  # skew makes R^T R too ill-conditioned to invert as a whole
         report["std"] = {
             "focal_rel": [round(float(sd[0] / refined[0]), 6), round(float(sd[1] / refined[1]), 6)],
             "principal_px": [round(float(sd[3]), 4), round(float(sd[4]), 4)],
         }
         if cfg.time_offset:  # p(d | K) p(K): the joint's upper-triangular factor, d's row first
-            cond = bn.at(bn.size() - 2)
-            sd_ = cond.get_model().sigmas() if cond.get_model() is not None else np.ones(1)
+            R_d, S_d = _whitened(bn.at(bn.size() - 2))
             A = np.zeros((10, 10))
-            A[0, 0], A[0, 1:] = cond.R()[0, 0] / sd_[0], cond.S()[0] / sd_[0]
-            A[1:, 1:] = _whitened_R(last)
+            A[0, 0], A[0, 1:], A[1:, 1:] = R_d[0, 0], S_d[0], R_K
             row = solve_triangular(A, np.eye(10))[0]
             report["std"]["time_offset_s"] = round(float(np.sqrt(np.sum(row**2))), 6)
     except (RuntimeError, np.linalg.LinAlgError) as e:
@@ -454,8 +454,9 @@ def refine_intrinsics(
         return keep(f"focal lengths changed by more than {cfg.max_focal_change_rel:.0%}")
     if max(abs(v) for v in report["principal_change_px"]) > cfg.max_principal_change_px:
         return keep(f"principal point moved by more than {cfg.max_principal_change_px:g} px")
-    d = float(res.atVector(D(0))[0]) if cfg.time_offset else 0.0
+    d = 0.0
     if cfg.time_offset:
+        d = float(res.atVector(D(0))[0])
         report["time_offset_s"] = round(d, 6)
         if not (np.isfinite(d) and abs(d) <= cfg.max_time_offset_s):
             return keep(f"time offset {d * 1e3:.1f} ms, beyond {cfg.max_time_offset_s * 1e3:g} ms")

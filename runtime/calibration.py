@@ -6,7 +6,9 @@ principal point 1 px, the distortion 2 %, as a user's own calibration would be) 
 alone cost flight seed 0 about 20 mm of its 23 mm Sim(3) ATE and handheld seed 2 about 22 of its 31 mm (2026-11-28,
 ``reports/ablations.md``). Monocular vision cannot see a focal error by itself, but the gyroscope can: a rotation of
 angle ``a`` moves the image by ``f a`` pixels, so a wrong ``f`` makes the images disagree with the IMU. OpenVINS
-estimates the intrinsics online for this reason; here they are estimated once, from the first seconds of the run.
+estimates the intrinsics online for this reason; here they are estimated once, from the first seconds of the run,
+for the sparse and the dense system alike (dense since 2026-12-02: SE(3) -17.0 +- 6.1 mm over 20 fresh runs against
+the dense system on the written calibration, ``reports/ablations.md``).
 
 :func:`refine_intrinsics` takes what a first sparse pass over those seconds gives (its per-frame poses and the
 front end's tracks) and solves one Levenberg-Marquardt problem with GTSAM, all factors built in:
@@ -52,8 +54,7 @@ __all__ = ["IntrinsicsConfig", "IntrinsicsResult", "refine_intrinsics", "tracks_
 class IntrinsicsConfig:
     """Settings of the intrinsics refinement (``runtime.intrinsics``)."""
 
-    refine: bool = True  # the sparse system (dense=false) refines the written intrinsics before its run
-    dense_refine: bool = False  # the dense system: off, it lost its rule (MH_05 runs <= 0.05 m: 2 -> 1 of 11)
+    refine: bool = True  # refine the written intrinsics over a first sparse pass before the run (sparse and dense)
     seconds: float = 15.0  # seconds of data of the first (sparse) pass from the first frame
     frame_step: int = 3  # every n-th posed frame of the first pass is a frame of the adjustment
     min_views: int = 3  # a track needs this many frames of the adjustment
@@ -72,10 +73,6 @@ class IntrinsicsConfig:
     time_offset: bool = False  # also estimate the camera-IMU time offset in the same solve, and apply it
     time_offset_prior_s: float = 0.02  # [s] prior sigma of the offset (around 0)
     max_time_offset_s: float = 0.05  # a larger estimate is taken for a failure: keep the written calibration and stamps
-
-    def for_system(self, dense: bool) -> bool:
-        """Whether the sparse (``dense=False``) or the dense system refines the intrinsics."""
-        return self.dense_refine if dense else self.refine
 
     def __post_init__(self) -> None:
         if not self.seconds > 0:

@@ -75,7 +75,7 @@ def run_sequence(
 def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth_source, probe, run_id, stop):
     n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
     t_start, cpu_start = time.perf_counter(), time.process_time()
-    seq, intrinsics = _refine_intrinsics(seq, cfg, n, progress, stop, dense=dense is not None)
+    seq, intrinsics = _refine_intrinsics(seq, cfg, n, progress, stop)
     mapper = _make_mapper(seq, dense, model_dir, depth_source, probe) if dense is not None else None
     live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg, dense=mapper)  # the one code path, as live users feed it
     system = live.system
@@ -192,7 +192,7 @@ def _make_mapper(seq, dense, model_dir, depth_source, probe):
     return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
-def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, dense: bool) -> tuple[object, dict]:
+def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop) -> tuple[object, dict]:
     """A first sparse pass over ``cfg.intrinsics.seconds`` of the sequence and the bundle adjustment of
     :func:`runtime.calibration.refine_intrinsics`; returns the sequence seen with the refined camera (or as it is)
     and the report for ``metrics.json``."""
@@ -200,9 +200,8 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, dense
     from runtime.io.sequence import CameraView
 
     c = cfg.intrinsics
-    if not c.for_system(dense):
-        key = "dense_refine" if dense else "refine"
-        return seq, {"refined": False, "reason": f"off (runtime.intrinsics.{key}=false)"}
+    if not c.refine:
+        return seq, {"refined": False, "reason": "off (runtime.intrinsics.refine=false)"}
     t0 = time.perf_counter()
     ts = np.asarray(seq.frame_ts, dtype=np.int64)
     n1 = min(n, int(np.searchsorted(ts, int(ts[0] + c.seconds * 1e9), "right")))

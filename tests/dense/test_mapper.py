@@ -128,6 +128,10 @@ def test_dense_run_completes_writes_outputs_and_keeps_the_ate_bounded(runs):
     assert saved["dense_optimisations_before_start"] > 0 and saved["dense_optimisations"] > 0  # 2 s waited
     # the sparse run writes none of the dense outputs
     assert not (sparse_out / "dense_map.ply").exists() and "depth_metrics" not in m_sparse
+    # both systems refine the camera over the same first sparse pass (here the whole 8 s), to the same calibration
+    timing = {"seconds", "seconds_total", "marginals_s"}
+    intr, intr_sparse = ({k: v for k, v in x["intrinsics"].items() if k not in timing} for x in (m, m_sparse))
+    assert intr["first_pass_frames"] == m["frames"] and "estimated" in intr and intr == intr_sparse, intr
 
 
 def test_decoder_runs_once_per_code(runs):

@@ -75,13 +75,15 @@ def run_sequence(
 def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth_source, probe, run_id, stop):
     n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
     t_start, cpu_start = time.perf_counter(), time.process_time()
-    seq, intrinsics = _refine_intrinsics(seq, cfg, n, progress, stop)
+    cache = ImageCache()  # the first pass's decoded images, read again by the run
+    seq, intrinsics = _refine_intrinsics(seq, cfg, n, progress, stop, cache)
     mapper = _make_mapper(seq, dense, model_dir, depth_source, probe) if dense is not None else None
     live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg, dense=mapper)  # the one code path, as live users feed it
     system = live.system
     recorder = _make_recorder(viz, out, seq)
     images = ImageCheck()
-    done = _run_frames(live, seq, n, recorder, progress, stop, images)
+    done = _run_frames(live, seq, n, recorder, progress, stop, images, cache=cache)
+    cache.clear()
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
     ts, T, pts = _write_trajectory_and_map(system, out)
     metrics = {
@@ -192,10 +194,10 @@ def _make_mapper(seq, dense, model_dir, depth_source, probe):
     return DenseMapper(net, seq.camera, seq.T_b_c, dense, depth_gt=depth_gt, depth_source=depth_source, probe=probe)
 
 
-def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop) -> tuple[object, dict]:
+def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, cache=None) -> tuple[object, dict]:
     """A first sparse pass over ``cfg.intrinsics.seconds`` of the sequence and the bundle adjustment of
     :func:`runtime.calibration.refine_intrinsics`; returns the sequence seen with the refined camera (or as it is)
-    and the report for ``metrics.json``."""
+    and the report for ``metrics.json``. ``cache``: an :class:`ImageCache` that keeps the pass's images."""
     from runtime.calibration import refine_intrinsics
     from runtime.io.sequence import CameraView
 
@@ -208,7 +210,9 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop) -> tu
     log.info("intrinsics: a first sparse pass over %d frames (%.1f s) to refine the camera", n1, c.seconds)
     first = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg)
     first.system.feature_log = []
-    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics")
+    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics", cache=cache)
+    if cache is not None:
+        cache.filling = False
     if stop is not None and stop.signal is not None:
         return seq, {"refined": False, "reason": f"interrupted by {stop.signal}"}
     traj_ts, traj_T = first.system.trajectory()
@@ -229,11 +233,12 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop) -> tu
 
 
 def _run_frames(
-    live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None, desc: str = "dit-slam"
+    live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None, desc: str = "dit-slam", cache=None
 ) -> int:
     """Feed the first ``n`` frames (images decoded ahead in a thread), each after the IMU samples up to its time,
     to ``live``, until ``stop.signal`` is set; then the IMU samples after the last frame. ``images``: an
-    :class:`ImageCheck` that looks at the images. Returns the number of frames processed."""
+    :class:`ImageCheck` that looks at the images; ``cache``: an :class:`ImageCache` read (and filled) on the way.
+    Returns the number of frames processed."""
     system, k = live.system, 0
     bar = None
     done = 0
@@ -241,7 +246,7 @@ def _run_frames(
         from tqdm import tqdm
 
         bar = tqdm(total=n, unit="frame", desc=desc, dynamic_ncols=True)
-    for i, img, err, t_wait in _prefetched_images(seq, n):
+    for i, img, err, t_wait in _prefetched_images(seq, n, cache=cache):
         if stop is not None and stop.signal is not None:
             break
         ts = int(seq.frame_ts[i])
@@ -369,19 +374,52 @@ def _read_image(seq, i: int):
         return None, f"{type(e).__name__}: {str(e)[:200]}"
 
 
-def _prefetched_images(seq, n: int, depth: int = 3):
+class ImageCache:
+    """Decoded images kept from the intrinsics refinement's first pass for the run that follows, which then reads
+    each of them from memory once instead of decoding it again (``filling``: keep what is read; at most
+    ``max_bytes``, the images beyond it are decoded again). The main command's run decodes 301 fewer PNGs, about
+    4 ms of CPU each at 752x480, on cores the dense system's threads share."""
+
+    def __init__(self, max_bytes: int = 512 * 2**20) -> None:
+        self.max_bytes = int(max_bytes)
+        self.filling = True
+        self._images: dict[int, np.ndarray] = {}
+        self._bytes = 0
+
+    def read(self, seq, i: int):
+        """``(image or None, error or None)`` of frame ``i``, from memory when kept."""
+        img = self._images.pop(i, None)
+        if img is not None:
+            self._bytes -= img.nbytes
+            return img, None
+        img, err = _read_image(seq, i)
+        if self.filling and img is not None and self._bytes + img.nbytes <= self.max_bytes:
+            self._images[i] = img
+            self._bytes += img.nbytes
+        return img, err
+
+    def __len__(self) -> int:
+        return len(self._images)
+
+    def clear(self) -> None:
+        self._images.clear()
+        self._bytes = 0
+
+
+def _prefetched_images(seq, n: int, depth: int = 3, cache: ImageCache | None = None):
     """Yield ``(i, image or None, error or None, seconds waited)``; PNG decoding runs ahead in a thread
     (OpenCV releases the GIL, so it overlaps with tracking and optimisation on the second core)."""
     from concurrent.futures import ThreadPoolExecutor
 
+    read = cache.read if cache is not None else _read_image
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="imread") as ex:
-        futs = deque(ex.submit(_read_image, seq, i) for i in range(min(depth, n)))
+        futs = deque(ex.submit(read, seq, i) for i in range(min(depth, n)))
         for i in range(n):
             t0 = time.perf_counter()
             img, err = futs.popleft().result()
             waited = time.perf_counter() - t0
             if i + depth < n:
-                futs.append(ex.submit(_read_image, seq, i + depth))
+                futs.append(ex.submit(read, seq, i + depth))
             yield i, img, err, waited
 
 

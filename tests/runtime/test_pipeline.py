@@ -14,7 +14,7 @@ from runtime.geometry import pose_error
 from runtime.io.euroc import read_euroc
 from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
-from runtime.run import run_sequence
+from runtime.run import ImageCache, run_sequence
 from runtime.slam import SlamConfig
 
 sim_euroc = pytest.importorskip("sim.euroc")
@@ -191,3 +191,33 @@ def test_the_time_offset_option_moves_the_stamps_by_its_estimate(tiny, tmp_path)
     moved = np.round((ts - int(round(d * 1e9))) / 1e3).astype(np.int64) * 1000  # TUM keeps 9 decimals: ns
     assert np.isin(moved, frames).all() and m["ate_se3_rmse_m"] < 0.05
     assert f"camera-IMU time offset {1e3 * d:+.1f} ms" in _summary(m, tmp_path / "out", False)
+
+
+class _CountingSequence:
+    """Frames of 100 bytes each; counts the decodes; frame 3 is unreadable."""
+
+    def __init__(self):
+        self.decoded = []
+
+    def image(self, i):
+        self.decoded.append(i)
+        if i == 3:
+            raise OSError("corrupt")
+        return np.full((10, 10), i, np.uint8)
+
+
+def test_image_cache_gives_the_first_passs_images_to_the_run_once_within_its_bound():
+    seq = _CountingSequence()
+    cache = ImageCache(max_bytes=400)  # room for 4 frames
+    first = [cache.read(seq, i) for i in range(6)]
+    assert len(cache) == 4
+    assert [e is None for _, e in first] == [True, True, True, False, True, True]
+    cache.filling = False
+    again = [cache.read(seq, i) for i in range(8)]
+    # frames 0, 1, 2 and 4 come from memory (the same arrays); 3 (unreadable) and 5 (over the bound) are read again
+    assert seq.decoded == [0, 1, 2, 3, 4, 5, 3, 5, 6, 7]
+    assert all(again[i][0] is first[i][0] for i in (0, 1, 2, 4))
+    assert all(int(again[i][0][0, 0]) == i for i in (0, 1, 2, 4, 5, 6, 7))
+    assert again[3][0] is None and "corrupt" in again[3][1] and len(cache) == 0
+    cache.read(seq, 0)  # taken once: the next read decodes again, and nothing is kept any more
+    assert seq.decoded[-1] == 0 and len(cache) == 0

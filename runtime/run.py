@@ -82,7 +82,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
     system = live.system
     recorder = _make_recorder(viz, out, seq)
     images = ImageCheck()
-    done = _run_frames(live, seq, n, recorder, progress, stop, images, cache=cache)
+    done = _run_frames(live, seq, n, recorder, progress, stop, images, read=cache.take)
     cache.clear()
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
     ts, T, pts = _write_trajectory_and_map(system, out)
@@ -210,9 +210,8 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, cache
     log.info("intrinsics: a first sparse pass over %d frames (%.1f s) to refine the camera", n1, c.seconds)
     first = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg)
     first.system.feature_log = []
-    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics", cache=cache)
-    if cache is not None:
-        cache.filling = False
+    read = cache.keep if cache is not None else None
+    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics", read=read)
     if stop is not None and stop.signal is not None:
         return seq, {"refined": False, "reason": f"interrupted by {stop.signal}"}
     traj_ts, traj_T = first.system.trajectory()
@@ -233,12 +232,12 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, cache
 
 
 def _run_frames(
-    live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None, desc: str = "dit-slam", cache=None
+    live: LiveSlam, seq, n: int, recorder, progress: bool, stop=None, images=None, desc="dit-slam", read=None
 ) -> int:
     """Feed the first ``n`` frames (images decoded ahead in a thread), each after the IMU samples up to its time,
     to ``live``, until ``stop.signal`` is set; then the IMU samples after the last frame. ``images``: an
-    :class:`ImageCheck` that looks at the images; ``cache``: an :class:`ImageCache` read (and filled) on the way.
-    Returns the number of frames processed."""
+    :class:`ImageCheck` that looks at the images; ``read``: ``(seq, i) -> (image, error)`` (default
+    :func:`_read_image`; :meth:`ImageCache.keep` or :meth:`ImageCache.take`). Returns the number of frames processed."""
     system, k = live.system, 0
     bar = None
     done = 0
@@ -246,7 +245,7 @@ def _run_frames(
         from tqdm import tqdm
 
         bar = tqdm(total=n, unit="frame", desc=desc, dynamic_ncols=True)
-    for i, img, err, t_wait in _prefetched_images(seq, n, cache=cache):
+    for i, img, err, t_wait in _prefetched_images(seq, n, read=read if read is not None else _read_image):
         if stop is not None and stop.signal is not None:
             break
         ts = int(seq.frame_ts[i])
@@ -375,28 +374,31 @@ def _read_image(seq, i: int):
 
 
 class ImageCache:
-    """Decoded images kept from the intrinsics refinement's first pass for the run that follows, which then reads
-    each of them from memory once instead of decoding it again (``filling``: keep what is read; at most
-    ``max_bytes``, the images beyond it are decoded again). The main command's run decodes 301 fewer PNGs, about
-    4 ms of CPU each at 752x480, on cores the dense system's threads share."""
+    """Decoded images kept from the intrinsics refinement's first pass (:meth:`keep`, at most ``max_bytes``) for
+    the run that follows, which takes each of them from memory once instead of decoding it again (:meth:`take`).
+    The main command's run decodes 301 fewer PNGs, about 4 ms of CPU each at 752x480, on cores the dense system's
+    threads share."""
 
     def __init__(self, max_bytes: int = 512 * 2**20) -> None:
         self.max_bytes = int(max_bytes)
-        self.filling = True
         self._images: dict[int, np.ndarray] = {}
         self._bytes = 0
 
-    def read(self, seq, i: int):
-        """``(image or None, error or None)`` of frame ``i``, from memory when kept."""
-        img = self._images.pop(i, None)
-        if img is not None:
-            self._bytes -= img.nbytes
-            return img, None
+    def keep(self, seq, i: int):
+        """``(image or None, error or None)`` of frame ``i``, decoded and kept while it fits."""
         img, err = _read_image(seq, i)
-        if self.filling and img is not None and self._bytes + img.nbytes <= self.max_bytes:
+        if img is not None and self._bytes + img.nbytes <= self.max_bytes:
             self._images[i] = img
             self._bytes += img.nbytes
         return img, err
+
+    def take(self, seq, i: int):
+        """Frame ``i`` from memory (handed out once) when kept, else decoded; nothing is kept."""
+        img = self._images.pop(i, None)
+        if img is None:
+            return _read_image(seq, i)
+        self._bytes -= img.nbytes
+        return img, None
 
     def __len__(self) -> int:
         return len(self._images)
@@ -406,12 +408,11 @@ class ImageCache:
         self._bytes = 0
 
 
-def _prefetched_images(seq, n: int, depth: int = 3, cache: ImageCache | None = None):
+def _prefetched_images(seq, n: int, depth: int = 3, read=_read_image):
     """Yield ``(i, image or None, error or None, seconds waited)``; PNG decoding runs ahead in a thread
     (OpenCV releases the GIL, so it overlaps with tracking and optimisation on the second core)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    read = cache.read if cache is not None else _read_image
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="imread") as ex:
         futs = deque(ex.submit(read, seq, i) for i in range(min(depth, n)))
         for i in range(n):

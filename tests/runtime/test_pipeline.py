@@ -209,15 +209,26 @@ class _CountingSequence:
 def test_image_cache_gives_the_first_passs_images_to_the_run_once_within_its_bound():
     seq = _CountingSequence()
     cache = ImageCache(max_bytes=400)  # room for 4 frames
-    first = [cache.read(seq, i) for i in range(6)]
+    first = [cache.keep(seq, i) for i in range(6)]
     assert len(cache) == 4
     assert [e is None for _, e in first] == [True, True, True, False, True, True]
-    cache.filling = False
-    again = [cache.read(seq, i) for i in range(8)]
+    again = [cache.take(seq, i) for i in range(8)]
     # frames 0, 1, 2 and 4 come from memory (the same arrays); 3 (unreadable) and 5 (over the bound) are read again
     assert seq.decoded == [0, 1, 2, 3, 4, 5, 3, 5, 6, 7]
     assert all(again[i][0] is first[i][0] for i in (0, 1, 2, 4))
     assert all(int(again[i][0][0, 0]) == i for i in (0, 1, 2, 4, 5, 6, 7))
     assert again[3][0] is None and "corrupt" in again[3][1] and len(cache) == 0
-    cache.read(seq, 0)  # taken once: the next read decodes again, and nothing is kept any more
+    cache.take(seq, 0)  # taken once: the next read decodes again, and nothing is kept any more
     assert seq.decoded[-1] == 0 and len(cache) == 0
+
+
+def test_a_refined_run_decodes_each_image_once(tiny, tmp_path, monkeypatch):
+    """The first pass covers the whole 10 s here; the run takes its images from memory instead of decoding them
+    again (without the cache: 400 decodes of the 200 frames)."""
+    from runtime.io.euroc import EurocSequence
+
+    decoded, image = [], EurocSequence.image
+    monkeypatch.setattr(EurocSequence, "image", lambda self, i: decoded.append(i) or image(self, i))
+    m = run_sequence(read_euroc(tiny), tmp_path / "out", SlamConfig(), progress=False, plot=False)
+    assert m["intrinsics"]["first_pass_frames"] == m["frames"] == 200
+    assert sorted(decoded) == list(range(200))

@@ -43,12 +43,13 @@ This module never imports torch.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,6 +69,7 @@ from runtime.dense.map import (
 from runtime.dense.refine import refine_codes
 from runtime.dense.sampling import sample_consistency_pixels
 from runtime.dense.tsdf import TsdfVolume, write_mesh_ply
+from runtime.dense.worker import PriorityWorker
 from runtime.geometry import Camera, NetworkMapping, inv_T, project_pinhole
 
 __all__ = ["DepthSource", "network_depth", "DenseMapper"]
@@ -169,7 +171,7 @@ class DenseMapper:
         self.armed_for: int | None = None  # the backend's init_kf_id that t_first_ns belongs to
         self.dense_map: tuple[np.ndarray, np.ndarray | None] | None = None  # (xyz, rgb) once finish() ran
         self.depth_views: list[dict] = []  # a few window keyframes' depths once finish() ran (keyframe_depth.png)
-        self._pool: ThreadPoolExecutor | None = None  # the background network pass (DenseConfig.background)
+        self._pool: PriorityWorker | None = None  # the network thread (DenseConfig.background)
         self.fused_map = VoxelMap.from_config(self.cfg.map)  # the run's dense map (network thread only)
         self.tsdf = TsdfVolume.from_config(self.cfg.map) if self.cfg.map.mesh else None  # its TSDF (same thread)
 
@@ -214,13 +216,15 @@ class DenseMapper:
         of no metric scale: fewer than ``min_sparse_points``. It takes no code and is not fused."""
         return 0 <= n_sparse < self.cfg.min_sparse_points
 
-    def _submit(self, fn, *args) -> Future:
-        """Run ``fn(*args)`` on the network thread (``DenseConfig.background``; one worker, so that the passes
-        on one keyframe never overlap) or here; errors are raised where the result is read."""
+    def _submit(self, fn, *args, urgent: bool = True) -> Future:
+        """Run ``fn(*args)`` on the network thread (``DenseConfig.background``; one thread, so that the passes
+        on one keyframe never overlap) or here; errors are raised where the result is read. ``urgent``: the
+        tracking thread will wait for it (a network pass, a relinearisation); the others (map codes, depth
+        metrics, fusion) run when no urgent job is queued (:class:`runtime.dense.worker.PriorityWorker`)."""
         if self.cfg.background:
             if self._pool is None:
-                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dense-network")
-            return self._pool.submit(fn, *args)
+                self._pool = PriorityWorker("dense-network")
+            return self._pool.submit(fn, *args, urgent=urgent)
         job = Future()
         try:
             job.set_result(fn(*args))
@@ -414,14 +418,16 @@ class DenseMapper:
             samples.append(s.uv)
         poses = [np.asarray(backend.keyframe(g.kf_id).T_w_b, np.float64).copy() for g in group]
         codes = [g.code.copy() for g in group]
-        d.map_code = self._submit(self._fit_map_code, [g.job for g in group], codes, poses, samples)
+        frozen = self._submit(_frozen_providers, [g.job for g in group])  # urgent: after the relinearisations so far
+        d.map_code = self._submit(self._fit_map_code, frozen, codes, poses, samples, urgent=False)
 
-    def _fit_map_code(self, jobs: list[Future], codes: list, poses: list, samples: list) -> np.ndarray:
-        """The first keyframe's map code (network thread); its window code when the fit fails (logged)."""
+    def _fit_map_code(self, frozen: Future, codes: list, poses: list, samples: list) -> np.ndarray:
+        """The first keyframe's map code (network thread); its window code when the fit fails (logged).
+        ``frozen``: the group's providers as linearised when the fit was submitted (:func:`_frozen_providers`)."""
         t0 = time.perf_counter()
         mc = self.cfg.map_codes
         fcfg = dataclasses.replace(self.cfg.factors, sigma_per_b=mc.sigma_per_b)
-        providers = [j.result() for j in jobs]
+        providers = frozen.result()
         try:
             fitted, _ = refine_codes(
                 providers, codes, poses, samples, self.T_b_c, self.K_net, fcfg, self.cfg.code_prior_sigma,
@@ -459,7 +465,7 @@ class DenseMapper:
                 self.tsdf.integrate(d.kf_id, depth, T_w_c, self.net_cam, provider.uncertainty, d.image, self.cfg.map)
                 self.timers["dense_tsdf"] += time.perf_counter() - t1
 
-        self._submit(integrate, d.provider, d.code.copy(), d.map_code)
+        self._submit(integrate, d.provider, d.code.copy(), d.map_code, urgent=False)
 
     # ------------------------------------------------------------------ evaluation and outputs
     def final_depth(self, d: _KfDense) -> np.ndarray:
@@ -474,7 +480,7 @@ class DenseMapper:
         uv_net = self.mapping.points_to_network(uv)
         sparse_in = self._sparse_input(d.sparse_points)
         self.per_kf_metrics[d.kf_id] = self._submit(
-            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, sparse_in
+            self._depth_errors, d.provider, d.code.copy(), d.frame_idx, uv_net, z, d.map_code, sparse_in, urgent=False
         )
 
     def _depth_errors(
@@ -616,6 +622,13 @@ class DenseMapper:
 #: The rows of ``depth_metrics`` in ``metrics.json``: the estimates, then the references (see ``_depth_errors``).
 REFERENCE_STAGES = ("interpolated", "median")  # left out when no keyframe has them (a network without sparse input)
 DEPTH_STAGES = ("sparse", "prior", "optimised", "map", *REFERENCE_STAGES)
+
+
+def _frozen_providers(jobs: list[Future]) -> list[LinearizedDepth]:
+    """The providers of ``jobs`` as they are linearised now: shallow copies, which a later relinearisation of the
+    originals (it rebinds their maps) leaves as they are. A map-code fit runs on the network thread after urgent
+    jobs submitted later than itself; through these copies it sees the linearisation it was submitted at."""
+    return [copy.copy(j.result()) for j in jobs]
 
 
 def _quartiles(values: list) -> list[float] | None:

@@ -2,8 +2,10 @@
 mapper's parts: the decoder cache, the depth sources, the code keyframes and the start wait."""
 
 import json
+import threading
 from collections import defaultdict
 from concurrent.futures import Future
+from dataclasses import replace
 from types import SimpleNamespace
 
 import gtsam
@@ -20,6 +22,7 @@ from runtime.io.ply import read_ply
 from runtime.io.tum import read_tum
 from runtime.network import DepthNetwork, default_model_dir
 from runtime.run import run_sequence
+from tests.dense.fakes import T_B_C, ExpDepth
 
 sim_euroc = pytest.importorskip("sim.euroc")
 
@@ -143,6 +146,104 @@ def test_decoder_runs_once_per_code(runs):
     # at most one relinearisation per code keyframe and optimisation, plus two decodes per evaluated keyframe
     bound = m["dense_optimisations"] * m["dense_mean_code_keyframes"] + 2 * (m["keyframes"] + 1)
     assert len(calls) <= bound + 1e-9, (len(calls), bound)
+
+
+def test_the_outputs_do_not_depend_on_when_the_network_thread_runs_its_later_work(seq8, tmp_path, monkeypatch):
+    """The network thread runs the jobs tracking waits for (network passes, relinearisations) before the map codes,
+    depth metrics and fusion queued earlier. Holding each of the latter back until three more urgent jobs have
+    been submitted (so that relinearisations submitted after a map-code fit run before it) changes no output: the
+    fit sees the linearisation it was submitted at."""
+    from runtime.dense.worker import PriorityWorker
+    from runtime.slam import SlamConfig
+
+    base = SlamConfig()
+    # keyframes leave the window (map codes, metrics, fusion) from the first seconds; no first pass
+    cfg = replace(base, backend=replace(base.backend, window_size=8), intrinsics=replace(base.intrinsics, refine=False))
+    dense = DenseConfig(n_consis=150, start_after_s=1.0, relin_tol=1e-3)  # a relinearisation at nearly every step
+    outs = [tmp_path / "as_scheduled", tmp_path / "later_work_held"]
+    ms = [run_sequence(read_euroc(seq8), outs[0], cfg, dense=dense, progress=False, plot=False)]
+    submit, shutdown = PriorityWorker.submit, PriorityWorker.shutdown
+    held, n_urgent, log = [], [0], {"released_late": 0}
+
+    class Held(Future):
+        def result(self, timeout=None):  # a reader releases it (and what is held before it) at once
+            release(lambda job: job is self or self in [h[1] for h in held])
+            return super().result(timeout)
+
+    def release(due):
+        while held and due(held[0][1]):
+            worker, proxy, fn, args, at = held.pop(0)
+            log["released_late"] += n_urgent[0] - at >= 3
+
+            def run(proxy=proxy, fn=fn, args=args):
+                try:
+                    proxy.set_result(fn(*args))
+                except Exception as e:  # noqa: BLE001
+                    proxy.set_exception(e)
+
+            submit(worker, run, urgent=False)
+
+    def holding_submit(self, fn, *args, urgent=True):
+        if urgent:
+            n_urgent[0] += 1
+            release(lambda job: n_urgent[0] - job.at >= 3)
+            return submit(self, fn, *args)
+        proxy = Held()
+        proxy.at = n_urgent[0]
+        held.append((self, proxy, fn, args, proxy.at))
+        return proxy
+
+    def releasing_shutdown(self, wait=True):
+        release(lambda job: True)
+        shutdown(self, wait)
+
+    monkeypatch.setattr(PriorityWorker, "submit", holding_submit)
+    monkeypatch.setattr(PriorityWorker, "shutdown", releasing_shutdown)
+    ms.append(run_sequence(read_euroc(seq8), outs[1], cfg, dense=dense, progress=False, plot=False))
+    assert log["released_late"] > 0  # later work did wait for urgent jobs submitted after it
+    assert ms[0]["dense_map_points"] > 0 and ms[0]["depth_metrics_keyframes"] > 0
+    for key in ("keyframes", "decoder_calls", "dense_map_points", "depth_metrics"):
+        assert ms[0][key] == ms[1][key], key
+    for name in ("trajectory.txt", "dense_map.ply"):
+        assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
+
+
+def test_a_map_code_fit_sees_the_linearisation_it_was_submitted_at():
+    """A leaving keyframe's map-code fit is later work: a relinearisation of one of its group submitted after it
+    runs first on the network thread. The fit still gives the code it gives when run at once, where the same fit
+    on the relinearised group gives another."""
+    from runtime.dense.mapper import _KfDense
+    from tests.dense.test_refine import CD, H, K, W, _wall
+
+    backend = SimpleNamespace(covisible_keyframes=lambda k, n: [j for j in range(3) if j != k])
+
+    def mapper(background: bool):
+        lin, Ts, *_ = _wall(3, seed=2, kind=ExpDepth)
+        backend.keyframe = lambda k: SimpleNamespace(T_w_b=Ts[k])
+        m = DenseMapper.__new__(DenseMapper)
+        m.cfg, m.T_b_c, m.K_net, m._pool = DenseConfig(background=background), T_B_C, K, None
+        m.timers = defaultdict(float)
+        m.net = SimpleNamespace(width=W, height=H)
+        codes = [np.zeros(CD), np.full(CD, 0.2), np.full(CD, -0.2)]
+        m.kfs = {k: _KfDense(k, k, _done(lin[k]), np.zeros((0, 2)), None, codes[k], had_code=True) for k in range(3)}
+        return m, lin
+
+    m, _ = mapper(background=False)
+    m._refine(backend, m.kfs[0])
+    at_once = m.kfs[0].map_code.result()
+    m, lin = mapper(background=True)
+    gate, started = threading.Event(), threading.Event()
+    m._submit(lambda: (started.set(), gate.wait()))  # the network thread busy while both are queued
+    assert started.wait(10)
+    m._refine(backend, m.kfs[0])
+    m._submit(m._relinearize, lin[1], np.full(CD, 0.6))  # urgent: runs before the fit
+    gate.set()
+    np.testing.assert_array_equal(m.kfs[0].map_code.result(timeout=60), at_once)
+    assert lin[1].n_relin == 2  # the relinearisation did run, and it matters:
+    m.kfs[0].map_code = None
+    m._refine(backend, m.kfs[0])
+    assert np.abs(m.kfs[0].map_code.result(timeout=60) - at_once).max() > 1e-3
+    m.close()
 
 
 def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
@@ -433,7 +534,7 @@ def test_keyframes_below_min_sparse_points_stay_out_of_the_dense_map():
     m = DenseMapper.__new__(DenseMapper)
     m.cfg, m.T_b_c = DenseConfig(min_sparse_points=20), np.eye(4)
     fused = []
-    m._submit = lambda fn, provider, code, map_code: fused.append(provider)
+    m._submit = lambda fn, provider, code, map_code, urgent=True: fused.append(provider)
     for k, n in ((1, 0), (2, 19), (3, 20), (4, -1)):
         d = SimpleNamespace(kf_id=k, fused=False, n_sparse=n, job=_done(k), code=np.zeros(8), map_code=None)
         d.provider = k
@@ -454,7 +555,7 @@ def test_a_failed_map_code_fit_leaves_the_window_code(monkeypatch, caplog):
     m.cfg, m.T_b_c, m.K_net, m.timers = DenseConfig(), np.eye(4), (100.0, 100.0, 32.0, 32.0), defaultdict(float)
     code = np.arange(8, dtype=np.float64) * 0.1
     with caplog.at_level("WARNING"):
-        out = m._fit_map_code([_done(1), _done(2)], [code, np.zeros(8)], [np.eye(4)] * 2, [np.zeros((4, 2))] * 2)
+        out = m._fit_map_code(_done([1, 2]), [code, np.zeros(8)], [np.eye(4)] * 2, [np.zeros((4, 2))] * 2)
     np.testing.assert_array_equal(out, code)
     assert "map code fit failed" in caplog.text and m.timers["dense_map_codes"] >= 0
 

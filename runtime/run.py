@@ -84,6 +84,8 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
     images = ImageCheck()
     done = _run_frames(live, seq, n, recorder, progress, stop, images, read=cache.take)
     cache.clear()
+    if mapper is not None:
+        mapper.drain()  # the network thread's map codes, depth metrics and fusion of the frames run count in wall_s
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
     ts, T, pts = _write_trajectory_and_map(system, out)
     metrics = {

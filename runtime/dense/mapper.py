@@ -584,6 +584,11 @@ class DenseMapper:
             "dense_tsdf_mb": self.tsdf.nbytes / 1e6,
         }
 
+    def drain(self) -> None:
+        """Wait until the network thread has run every job submitted so far (its later work included)."""
+        if self._pool is not None:
+            self._submit(_nothing, urgent=False).result()
+
     def close(self) -> None:
         """Wait for the network thread's passes and stop it (a later keyframe starts a new one)."""
         if self._pool is not None:
@@ -622,6 +627,10 @@ class DenseMapper:
 #: The rows of ``depth_metrics`` in ``metrics.json``: the estimates, then the references (see ``_depth_errors``).
 REFERENCE_STAGES = ("interpolated", "median")  # left out when no keyframe has them (a network without sparse input)
 DEPTH_STAGES = ("sparse", "prior", "optimised", "map", *REFERENCE_STAGES)
+
+
+def _nothing() -> None:
+    """A job that marks a place in the network thread's later queue (:meth:`DenseMapper.drain`)."""
 
 
 def _frozen_providers(jobs: list[Future]) -> list[LinearizedDepth]:

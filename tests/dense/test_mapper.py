@@ -246,6 +246,20 @@ def test_a_map_code_fit_sees_the_linearisation_it_was_submitted_at():
     m.close()
 
 
+def test_drain_returns_once_the_later_work_queued_so_far_has_run():
+    """``wall_s`` is measured after :meth:`DenseMapper.drain`: the later work of the frames run counts in it."""
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg, m._pool, done = DenseConfig(), None, []
+    gate = threading.Event()
+    m._submit(gate.wait, 10)
+    m._submit(done.append, "map code", urgent=False)
+    m._submit(done.append, "network pass")
+    threading.Timer(0.2, gate.set).start()
+    m.drain()
+    assert done == ["network pass", "map code"]
+    m.close()
+
+
 def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
     class Lin:
         """Quadratic decoder D(c) = D0 + B c + 0.5 (c.c) Q."""

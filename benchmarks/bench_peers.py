@@ -7,9 +7,10 @@
     python benchmarks/bench_peers.py --sequences textured_s0 flight-ideal_s0 --runs 3
     python benchmarks/bench_peers.py --systems dit-slam-sparse dit-slam-dense --merge   # rerun ours only
 
-Sequence names: ``PRESET_sSEED`` (``dit-sim euroc preset=PRESET seed=SEED duration=--duration``, the preset's own
-realism), ``PRESET-ideal_sSEED`` (the same with ``realism=false``), ``mh05`` (``../shared/data``'s MH_05 excerpt
-completed by ``dit-sim imu``). They are rendered once into ``--data`` and reused.
+Sequence names (:mod:`benchmarks.sequences`): ``PRESET_sSEED`` (``dit-sim euroc preset=PRESET seed=SEED
+duration=--duration``, the preset's own realism), ``PRESET-ideal_sSEED`` (the same with ``realism=false``), ``mh05``
+(``../shared/data``'s MH_05 excerpt completed by ``dit-sim imu``), ``mh05_sSEED`` (with IMU seed ``SEED``). They are
+rendered once into ``--data`` and reused.
 
 For each system and sequence: the peer's settings are written from the sequence's ``sensor.yaml`` files
 (``benchmarks.peers.settings``), the system runs in a child process (its CPU time is the child's), and its
@@ -49,9 +50,8 @@ import numpy as np
 
 from benchmarks.common import REPO, cache_dir, slam_machine, write_json
 from benchmarks.peers import scoring
+from benchmarks.sequences import BIN, dit_sim, ensure_sequence
 
-BIN = Path(sys.executable).parent
-MH05 = REPO.parent / "shared" / "data" / "euroc_MH_05_excerpt"
 RGBD_REAL = REPO.parent / "shared" / "data" / "rgbd_real"
 DEFAULT_SEQUENCES = [f"{p}_s{s}" for p in ("flight", "handheld", "tabletop") for s in (0, 1, 2)] + [
     "whitewall_s0",
@@ -63,56 +63,12 @@ VOCAB_NOTE = "home-trained ORB vocabulary (DBoW2 k={k}, L={L}, {n_img} images: {
 
 
 # ------------------------------------------------------------------------------------------------ data
-def _dit_sim(*args: str) -> None:
-    r = subprocess.run([str(BIN / "dit-sim"), *args], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"dit-sim {' '.join(args)} failed: {(r.stderr or r.stdout).strip()[-800:]}")
-
-
-def parse_sequence(name: str) -> dict:
-    """``flight_s1`` -> preset flight, seed 1, its own realism; ``flight-ideal_s0`` -> realism=false;
-    ``mh05`` -> the real excerpt. Raises ValueError for another form."""
-    if name == "mh05":
-        return {"kind": "mh05"}
-    stem, sep, seed = name.rpartition("_s")
-    if not sep or not seed.isdigit() or not stem:
-        raise ValueError(f"sequence name '{name}' is not PRESET_sSEED, PRESET-ideal_sSEED or mh05")
-    preset, ideal = (stem[: -len("-ideal")], True) if stem.endswith("-ideal") else (stem, False)
-    return {"kind": "sim", "preset": preset, "seed": int(seed), "realism": False if ideal else None}
-
-
-def ensure_sequence(name: str, data: Path, duration: float) -> Path:
-    """The rendered (or completed) sequence ``name`` under ``data``, made on first use."""
-    seq = data / name
-    if (seq / "mav0" / "cam0" / "data.csv").is_file():
-        return seq
-    spec = parse_sequence(name)
-    tmp = data / f".{name}.part"
-    if spec["kind"] == "mh05":
-        if not (MH05 / "mav0").is_dir():
-            raise FileNotFoundError(f"{MH05}: the MH_05 excerpt is not here (../shared/data)")
-        _dit_sim("imu", f"source={MH05}", f"out={tmp}")
-    else:
-        extra = [] if spec["realism"] is None else ["realism=false"]
-        _dit_sim(
-            "euroc",
-            f"out={tmp}",
-            f"preset={spec['preset']}",
-            f"seed={spec['seed']}",
-            f"duration={duration:g}",
-            "progress=false",
-            *extra,
-        )
-    tmp.rename(seq)
-    return seq
-
-
 def _vocab_images(data: Path, preset: str) -> tuple[list[np.ndarray], list[str]]:
     import cv2
 
     seq = data / "vocab_train"
     if not (seq / "mav0" / "cam0" / "data.csv").is_file():
-        _dit_sim("euroc", f"out={seq}", f"preset={preset}", "seed=100", "duration=6", "progress=false")
+        dit_sim("euroc", f"out={seq}", f"preset={preset}", "seed=100", "duration=6", "progress=false")
     paths = sorted((seq / "mav0" / "cam0" / "data").glob("*.png"))
     sources = [f"{len(paths)} frames of dit-sim preset={preset} seed=100 (not evaluated)"]
     real = sorted(RGBD_REAL.rglob("*color*.png"))[:60] + sorted(RGBD_REAL.rglob("*color*.jpg"))[:60]

@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.bench_peers import aggregate, merge_results, ours_command, parse_sequence, ratios
+from benchmarks.bench_peers import aggregate, merge_results, ours_command, ratios
 from benchmarks.peers import scoring, settings, vocab
+from benchmarks.sequences import parse_sequence
 from runtime.io.sensor_yaml import load_sensor_yaml
 
 # EuRoC's cam0 T_BS (camera in the body/IMU frame), as in docs and ORB-SLAM3's own EuRoC.yaml IMU.T_b_c1
@@ -195,8 +196,10 @@ def test_median_range_and_rows():
 def test_parse_sequence_names():
     assert parse_sequence("flight_s2") == {"kind": "sim", "preset": "flight", "seed": 2, "realism": None}
     assert parse_sequence("flight-ideal_s0")["realism"] is False and parse_sequence("mh05") == {"kind": "mh05"}
-    with pytest.raises(ValueError, match="PRESET_sSEED"):
-        parse_sequence("flight")
+    assert parse_sequence("mh05_s12") == {"kind": "mh05", "seed": 12}
+    for bad in ("flight", "flight_s", "_s3", "mh05_sx"):
+        with pytest.raises(ValueError, match="PRESET_sSEED"):
+            parse_sequence(bad)
 
 
 def test_vocabulary_text_round_trip_and_words():

@@ -8,7 +8,10 @@ For a sequence with no period at rest (a MAV already flying, a hand-held camera 
    the essential matrix between the first and the last frame (RANSAC), their common tracks triangulated, every
    other frame's pose by PnP on those points, then all tracks triangulated and refined by a small bundle
    adjustment (GTSAM, Huber). Poses ``T_c0_ck`` are known up to one scale.
-2. **Gyroscope bias**: the visual relative rotations against the gyro's (Gauss-Newton on ``b_g``).
+2. **Gyroscope bias**: the visual relative rotations against the gyro's (Gauss-Newton on ``b_g``). The bias is
+   constant over seconds: when earlier attempts agreed on one (``earlier_bias``, kept by the runner), an attempt
+   whose bias lies more than ``bias_agree`` from it has a wrong structure from motion and is refused
+   (:class:`BiasDisagrees`; on ``handheld`` seed 42 a two-view solution 11.7 deg off in rotation, reports/).
 3. **Linear alignment** (Qin et al., VINS-Mono, IEEE T-RO 2018, Sec. V-B): with the IMU preintegrated between
    the frames (``alpha``, ``beta`` in the earlier body frame), the body positions ``P_k = s pc_k - R_c0_bk t_bc``
    and velocities ``V_k`` in the frame ``c0`` obey
@@ -79,6 +82,9 @@ class DynamicInitConfig:
     prior_hover_vel_sigma: float = 0.2  # m/s, velocity taken as 0 while hovering
     prior_roll_pitch_sigma: float = 0.03  # rad
     prior_gyro_bias_sigma: float = 0.01  # rad/s
+    # a start whose gyroscope bias is farther than this from the earlier attempts' (when at least two of them agree
+    # to within it) is refused: its structure from motion is wrong (reports/ablations.md, handheld seed 42)
+    bias_agree: float = 0.03  # rad/s; 0: off
 
 
 @dataclass
@@ -95,7 +101,17 @@ class DynamicResult:
 
 
 class InitFailed(Exception):
-    """The window does not allow an initialisation; the message says why."""
+    """The window does not allow an initialisation; the message says why. ``gyro_bias``: the gyroscope bias (3,)
+    that the window's structure from motion gave before the start failed on a later step (None when it did not
+    get that far, or when the start was refused for that bias)."""
+
+    def __init__(self, message: str, gyro_bias: np.ndarray | None = None):
+        super().__init__(message)
+        self.gyro_bias = gyro_bias
+
+
+class BiasDisagrees(InitFailed):
+    """The window's structure from motion gives a gyroscope bias unlike the one earlier attempts agreed on."""
 
 
 # ---------------------------------------------------------------------------------------------- SfM
@@ -375,15 +391,42 @@ def linear_alignment(
     return float(x[-1]), g, x[: 3 * F].reshape(F, 3), g_free, float(np.sqrt(np.mean(r**2))), ba
 
 
-def initialize_in_motion(frames: list, imu, T_b_c: np.ndarray, focal: float, cfg: DynamicInitConfig, gravity=GRAVITY):
+def initialize_in_motion(
+    frames: list,
+    imu,
+    T_b_c: np.ndarray,
+    focal: float,
+    cfg: DynamicInitConfig,
+    gravity=GRAVITY,
+    earlier_bias: np.ndarray | None = None,
+):
     """States of ``frames`` (tracked :class:`FrameFeatures`, oldest first) from SfM and the IMU stream ``imu``
-    (:class:`runtime.backend.imu.ImuStream`). Raises :class:`InitFailed` with the reason."""
+    (:class:`runtime.backend.imu.ImuStream`). Raises :class:`InitFailed` with the reason (and, once structure from
+    motion has given it, the gyroscope bias). ``earlier_bias``: the gyroscope bias (3,) that earlier attempts
+    agreed on; a bias farther than ``cfg.bias_agree`` from it refuses the start (the gyroscope bias is constant
+    over seconds, so a different one means a wrong structure from motion)."""
     T_c0_c, depth, info = structure_from_motion(frames, focal, cfg)
     R_c_b = T_b_c[:3, :3].T
     R_c0_b = T_c0_c[:, :3, :3] @ R_c_b
     ts = np.array([f.ts for f in frames], np.int64)
     segs = [imu.segment(int(a), int(b)) for a, b in zip(ts[:-1], ts[1:], strict=True)]
     bg = estimate_gyro_bias(R_c0_b, segs)
+    if earlier_bias is not None and cfg.bias_agree > 0:
+        off = float(np.linalg.norm(bg - earlier_bias))
+        if off > cfg.bias_agree:
+            raise BiasDisagrees(
+                f"structure from motion disagrees with the earlier attempts: gyroscope bias {np.round(bg, 3).tolist()} "
+                f"rad/s, {off:.3f} from their {np.round(earlier_bias, 3).tolist()} (> {cfg.bias_agree})"
+            )
+    try:
+        return _align(T_c0_c, depth, info, R_c0_b, ts, segs, bg, T_b_c, cfg, gravity)
+    except InitFailed as e:
+        e.gyro_bias = bg
+        raise
+
+
+def _align(T_c0_c, depth, info, R_c0_b, ts, segs, bg, T_b_c, cfg, gravity) -> DynamicResult:
+    """The visual-inertial alignment of :func:`initialize_in_motion` from its structure from motion and gyro bias."""
     pre = [_preintegrate(s, bg) for s in segs]
     rot_err = np.degrees(
         [np.linalg.norm(so3_log(p[0].T @ R_c0_b[k].T @ R_c0_b[k + 1])) for k, p in enumerate(pre)]
@@ -416,7 +459,7 @@ def initialize_in_motion(frames: list, imu, T_b_c: np.ndarray, focal: float, cfg
     if s * depth < cfg.min_depth_m:
         raise InitFailed(f"median scene depth {s * depth:.3f} m (< {cfg.min_depth_m}): tracks or scale implausible")
     R_w_c0 = gravity_aligned_rotation(-g)
-    T = np.zeros((len(frames), 4, 4))
+    T = np.zeros((len(ts), 4, 4))
     T[:, 3, 3] = 1.0
     T[:, :3, :3] = R_w_c0 @ R_c0_b
     P = s * T_c0_c[:, :3, 3] - np.einsum("fij,j->fi", R_c0_b, t_bc)

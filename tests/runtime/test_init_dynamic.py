@@ -6,7 +6,7 @@ import pytest
 from runtime.backend.imu import ImuStream
 from runtime.geometry import GRAVITY, so3_exp, so3_log
 from runtime.init import DynamicInitConfig, InitFailed, initialize_in_motion
-from runtime.init.dynamic import estimate_gyro_bias, initialize_hovering, rotation_only
+from runtime.init.dynamic import BiasDisagrees, estimate_gyro_bias, initialize_hovering, rotation_only
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, FakeTracker, Motion, make_imu, room_points
 
 T0 = 10**9
@@ -264,3 +264,48 @@ def test_backfill_reaches_every_kept_frame_and_is_reported():
         assert err < 0.01  # m: an exact IMU and the true start state, discretisation only
     assert DynamicInitConfig().backfill_s >= DynamicInitConfig().refine_within_s  # the default reaches every kept one
     assert backfill_info([], first.ts) == {"backfilled_frames": 0, "backfilled_s": 0.0}
+
+
+def test_a_start_whose_gyro_bias_disagrees_with_the_earlier_attempts_is_refused_and_failures_carry_it():
+    bias = np.array([0.01, -0.02, 0.015])
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0)
+    frames, imu = _frames(m, 1.6, bias=bias)
+    sel = frames[4::3][:10]
+    cfg = DynamicInitConfig()
+    r = initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, cfg, earlier_bias=bias + 0.01)  # within 0.03
+    assert np.allclose(r.bg, bias, atol=1e-3)
+    with pytest.raises(BiasDisagrees, match="disagrees with the earlier attempts") as e:
+        initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, cfg, earlier_bias=bias + [0.05, 0.0, 0.0])
+    assert e.value.gyro_bias is None  # a refused bias is not one to remember
+    off = DynamicInitConfig(bias_agree=0.0)  # the check off
+    assert initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, off, earlier_bias=bias + 1.0).scale > 0
+    # a start that fails after its structure from motion (here the depth bound) carries the bias it found
+    with pytest.raises(InitFailed, match="median scene depth") as e:
+        initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig(min_depth_m=1e3))
+    assert np.allclose(e.value.gyro_bias, bias, atol=1e-3)
+    with pytest.raises(InitFailed, match="parallax") as e:  # before structure from motion: no bias
+        initialize_in_motion(frames[4:6], imu, EUROC_T_BS, EUROC_CAM.fx, cfg)
+    assert e.value.gyro_bias is None
+
+
+def test_the_earlier_attempts_bias_needs_two_that_agree_within_the_window():
+    from runtime.init import InitConfig
+    from runtime.init.runner import InitRunner
+
+    run = InitRunner(InitConfig(), DynamicInitConfig(), imu=None, T_b_c=np.eye(4), focal=460.0, gravity=GRAVITY)
+    s = 10**9
+    b = np.array([0.09, 0.09, -0.05])
+    assert run.earlier_bias(s) is None
+    run.biases.append((s, b))
+    assert run.earlier_bias(s) is None  # one attempt is no agreement
+    run.biases.append((s + s // 10, b + [0.01, 0.0, 0.0]))
+    np.testing.assert_allclose(run.earlier_bias(s + s // 5), b + [0.005, 0.0, 0.0])
+    run.biases.append((s + s // 5, b + [0.2, 0.1, 0.0]))  # one far off: no agreement any more
+    assert run.earlier_bias(s + s // 5) is None
+    # attempts older than max_window_s (3 s) are forgotten, and a reset forgets them all
+    assert run.earlier_bias(s + 3 * s + s // 20) is None and len(run.biases) == 2
+    run.reset()
+    assert len(run.biases) == 0
+    run.dyn = DynamicInitConfig(bias_agree=0.0)
+    run.biases.extend([(s, b), (s, b)])
+    assert run.earlier_bias(s) is None

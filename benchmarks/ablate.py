@@ -94,6 +94,7 @@ def _run(cmd: list[str], out: Path, timeout: float) -> tuple[dict, bool]:
         return run_row(m), False
     out.mkdir(parents=True, exist_ok=True)
     stamp.unlink(missing_ok=True)
+    (out / "metrics.json").unlink(missing_ok=True)  # a run that fails before writing its own must not show the last
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
         failure = None if r.returncode == 0 else (r.stderr.strip().splitlines() or [f"exit status {r.returncode}"])[-1]

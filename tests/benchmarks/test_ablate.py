@@ -170,3 +170,13 @@ def test_ablation_needs_its_rule_written_first(fake, capsys):
     with pytest.raises(SystemExit):
         main([*base, "--arm", "B", "", "--arm", "F", "", "--out", str(tmp / "r.json")])
     assert "write the rule before the runs" in capsys.readouterr().err
+
+
+def test_a_run_that_fails_on_rerun_does_not_keep_the_earlier_runs_figures(fake):
+    tmp, base, _ = fake
+    out = ["--out", str(tmp / "r.json")]
+    assert main([*base, "--arm", "B", "", "--arm", "F", "fake.offset=0.002", *out])["summary"]["dense/F"]["pairs"] == 2
+    res = main([*base, "--arm", "B", "", "--arm", "F", "fake.offset=0.002 fake.fail=true", *out])
+    failed = [r for r in res["runs"] if r["arm"] == "F"]
+    assert all(not r["complete"] and r["se3_m"] is None and r["error"] for r in failed)
+    assert res["summary"]["dense/F"]["pairs"] == 0

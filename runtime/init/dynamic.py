@@ -105,9 +105,7 @@ class InitFailed(Exception):
     that the window's structure from motion gave before the start failed on a later step (None when it did not
     get that far, or when the start was refused for that bias)."""
 
-    def __init__(self, message: str, gyro_bias: np.ndarray | None = None):
-        super().__init__(message)
-        self.gyro_bias = gyro_bias
+    gyro_bias: np.ndarray | None = None
 
 
 class BiasDisagrees(InitFailed):

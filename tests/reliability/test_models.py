@@ -113,3 +113,17 @@ def test_model_whose_graph_size_differs_from_its_manifest_is_refused(tmp_path):
     with pytest.raises(ModelError, match=r"input shape \[1, 2, 64, 96\] does not match"):
         DepthNetwork(out)
     assert np.isfinite(DepthNetwork(write_model(tmp_path / "ok")).height)
+
+
+def test_run_sequence_checks_the_model_before_the_intrinsics_pass(tiny_seq, tmp_path, monkeypatch):
+    import runtime.run
+    from runtime.dense import DenseConfig
+    from runtime.io.euroc import read_euroc
+
+    def first_pass(*a, **k):
+        raise AssertionError("the intrinsics' first pass ran before the model was checked")
+
+    monkeypatch.setattr(runtime.run, "_refine_intrinsics", first_pass)
+    model = write_model(tmp_path / "rgb", modality="rgb")
+    with pytest.raises(ModelError, match="modality is 'rgb'"):
+        runtime.run.run_sequence(read_euroc(tiny_seq), tmp_path / "o", dense=DenseConfig(), model_dir=model)

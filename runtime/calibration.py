@@ -31,7 +31,8 @@ have against each other: the IMU factors hold each sample over the next sample p
 
 The result is accepted when the solve used enough landmarks and the change stays within physical bounds; otherwise
 the written calibration is kept and the reason reported. Radial-tangential cameras only (and the distortion-free
-pinhole camera of an undistorted view); an equidistant (fisheye) model keeps its calibration.
+pinhole camera of an undistorted view); an equidistant (fisheye) model, or a distortion with more than four
+coefficients, keeps its calibration, and the first pass is then not run (:func:`not_refined`).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["IntrinsicsConfig", "IntrinsicsResult", "refine_intrinsics", "tracks_from_features"]
+__all__ = ["IntrinsicsConfig", "IntrinsicsResult", "not_refined", "refine_intrinsics", "tracks_from_features"]
 
 
 @dataclass
@@ -266,6 +267,16 @@ def timed_camera_tie(noise, key_X: int, key_V: int, key_C: int, key_d: int, omeg
     return custom_factor(noise, [key_X, key_V, key_C, key_d], error_fn, [6, 3, 6, 1])
 
 
+def not_refined(camera) -> str | None:
+    """Why ``camera``'s model is outside the adjustment (None: it is refined). Checked before the first pass,
+    which would otherwise be run for nothing."""
+    if camera.model != "radtan":
+        return f"camera model {camera.model!r} is not refined (radial-tangential only)"
+    if len(camera.dist) > 4 and any(float(v) != 0.0 for v in camera.dist[4:]):
+        return "a distortion with more than four coefficients is not refined"
+    return None
+
+
 def refine_intrinsics(
     camera,
     T_b_c: np.ndarray,
@@ -309,10 +320,8 @@ def refine_intrinsics(
         log.info("intrinsics: kept the written calibration (%s)", reason)
         return IntrinsicsResult(camera, False, report)
 
-    if camera.model != "radtan":
-        return keep(f"camera model {camera.model!r} is not refined (radial-tangential only)")
-    if len(camera.dist) > 4 and any(float(v) != 0.0 for v in camera.dist[4:]):
-        return keep("a distortion with more than four coefficients is not refined")
+    if (why := not_refined(camera)) is not None:
+        return keep(why)
     traj_ts = np.asarray(traj_ts, dtype=np.int64)
     sel = np.arange(0, traj_ts.size, cfg.frame_step)
     if sel.size < cfg.min_frames:

@@ -215,12 +215,15 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, cache
     """A first sparse pass over ``cfg.intrinsics.seconds`` of the sequence and the bundle adjustment of
     :func:`runtime.calibration.refine_intrinsics`; returns the sequence seen with the refined camera (or as it is)
     and the report for ``metrics.json``. ``cache``: an :class:`ImageCache` that keeps the pass's images."""
-    from runtime.calibration import refine_intrinsics
+    from runtime.calibration import not_refined, refine_intrinsics
     from runtime.io.sequence import CameraView
 
     c = cfg.intrinsics
     if not c.refine:
         return seq, {"refined": False, "reason": "off (runtime.intrinsics.refine=false)"}
+    if (why := not_refined(seq.camera)) is not None:
+        log.info("intrinsics: kept the written calibration (%s); no first pass", why)
+        return seq, {"refined": False, "reason": why}
     t0 = time.perf_counter()
     ts = np.asarray(seq.frame_ts, dtype=np.int64)
     n1 = min(n, int(np.searchsorted(ts, int(ts[0] + c.seconds * 1e9), "right")))

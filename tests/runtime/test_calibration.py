@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from runtime.backend.imu import ImuStream
-from runtime.calibration import IntrinsicsConfig, refine_intrinsics, tracks_from_features
+from runtime.calibration import IntrinsicsConfig, not_refined, refine_intrinsics, tracks_from_features
 from runtime.frontend.tracking import FrameFeatures
 from runtime.geometry import so3_exp
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, FakeTracker, ImuNoise, Motion, make_imu, room_points
@@ -167,3 +167,24 @@ def test_a_camera_imu_time_offset_is_recovered_with_the_intrinsics(offset_s):
 def test_no_offset_is_found_where_there_is_none():
     res = _refine(EUROC_CAM, cfg=IntrinsicsConfig(time_offset=True))
     assert res.accepted and abs(res.report["time_offset_s"]) < 5e-4, res.report
+
+
+@pytest.mark.parametrize(
+    "camera, reason",
+    [
+        (replace(EUROC_CAM, model="equidistant"), "camera model 'equidistant' is not refined"),
+        (replace(EUROC_CAM, dist=(*EUROC_CAM.dist[:4], 0.01)), "more than four coefficients"),
+    ],
+)
+def test_a_camera_outside_the_adjustment_gets_no_first_pass(camera, reason, monkeypatch):
+    import runtime.run
+    from runtime.slam import SlamConfig
+
+    def first_pass(*a, **k):
+        raise AssertionError("the first pass ran for a camera the adjustment cannot refine")
+
+    monkeypatch.setattr(runtime.run, "_run_frames", first_pass)
+    seq = type("Seq", (), {"camera": camera, "frame_ts": np.arange(400) * 50_000_000})()
+    out, report = runtime.run._refine_intrinsics(seq, SlamConfig(), 400, False, None)
+    assert out is seq and report["refined"] is False and reason in report["reason"], report
+    assert EUROC_CAM.model == "radtan" and not_refined(EUROC_CAM) is None

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import write_json
-from benchmarks.track_drift import _bilinear
+from benchmarks.track_drift import _bilinear, true_camera
 
 
 def first_pass(seq, cfg):
@@ -46,12 +46,6 @@ def first_pass(seq, cfg):
     live.system.feature_log = []
     _run_frames(live, seq, n1, None, False)
     return live, *live.system.trajectory()
-
-
-def true_camera(seq, info: dict):
-    """The camera the images were rendered with (the written one when ``sim_info.json`` has no other)."""
-    rc = info.get("render_camera")
-    return replace(seq.camera, fx=rc[0], fy=rc[1], cx=rc[2], cy=rc[3], dist=tuple(rc[4:8])) if rc else seq.camera
 
 
 def exact_features(seq, features: list, cam, offset_ns: int) -> list:

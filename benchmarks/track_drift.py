@@ -36,6 +36,15 @@ EDGE_REL = 0.01
 MIN_TRACKS = 150
 
 
+def true_camera(seq, info: dict):
+    """The camera the images were rendered with: ``sim_info.json``'s ``render_camera`` (intrinsics, radial-tangential
+    distortion) on the written camera's model and size; the written camera when there is none (``ideal=true``)."""
+    from dataclasses import replace
+
+    rc = info.get("render_camera")
+    return replace(seq.camera, fx=rc[0], fy=rc[1], cx=rc[2], cy=rc[3], dist=tuple(rc[4:8])) if rc else seq.camera
+
+
 def _bilinear(depth: np.ndarray, uv: np.ndarray) -> float:
     """Depth at a subpixel (2,), 0 outside the image or next to a pixel without depth, or across an edge."""
     x0, y0 = int(np.floor(uv[0])), int(np.floor(uv[1]))
@@ -51,11 +60,9 @@ def _bilinear(depth: np.ndarray, uv: np.ndarray) -> float:
 def track_errors(seq, line_delay_s: float, frames: int | None = None) -> dict[int, list[float]]:
     """Errors [px] of the tracks against the true projection of their points, by age [frames]."""
     from runtime.frontend.tracking import FeatureTracker, TrackerConfig
-    from runtime.geometry import Camera
 
     info = json.loads((Path(seq.root) / "sim_info.json").read_text())
-    rc = info.get("render_camera")
-    true_cam = Camera(*rc[:4], seq.camera.width, seq.camera.height, tuple(rc[4:])) if rc else seq.camera
+    true_cam = true_camera(seq, info)
     offset_ns = int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
     tracker = FeatureTracker(seq.camera, seq.T_b_c, cfg=TrackerConfig(line_delay_s=line_delay_s))
     t_lo, t_hi = int(seq.gt.ts[0]), int(seq.gt.ts[-1])

@@ -20,14 +20,13 @@ import argparse
 import json
 import sys
 from contextlib import contextmanager
-from dataclasses import replace
 from pathlib import Path
 from unittest import mock
 
 import numpy as np
 
 from benchmarks.common import slam_machine, write_json
-from benchmarks.track_drift import _bilinear
+from benchmarks.track_drift import _bilinear, true_camera
 
 __all__ = ["ExactTracks", "exact_tracks", "main"]
 
@@ -36,9 +35,7 @@ class ExactTracks:
     """Snaps a :class:`runtime.frontend.tracking.FeatureTracker`'s tracks of ``seq`` to their true pixels."""
 
     def __init__(self, seq, info: dict) -> None:
-        rc = info.get("render_camera")
-        cam = seq.camera
-        self.camera = replace(cam, fx=rc[0], fy=rc[1], cx=rc[2], cy=rc[3], dist=tuple(rc[4:8])) if rc else cam
+        self.camera = true_camera(seq, info)
         self.offset_ns = int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
         self.seq = seq
         self.index = {int(t): i for i, t in enumerate(np.asarray(seq.frame_ts, dtype=np.int64))}

@@ -1,5 +1,6 @@
-"""What limits the intrinsics refinement: the adjustment on the front end's tracks, on the same tracks made exact, and
-on the tracks cut into short pieces.
+"""What limits the intrinsics refinement: its adjustment on the front end's tracks and on exact ones.
+
+The adjustment on the front end's tracks, on the same tracks made exact, and on the tracks cut into short pieces.
 
     python benchmarks/intrinsics_tracks.py --sequences DIR [DIR ...] [--pieces 5 10] [--out F.json]
 

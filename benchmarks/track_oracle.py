@@ -1,5 +1,7 @@
-"""What exact feature tracks would buy the trajectory: ``dit-slam`` (sparse) with the front end's tracks against the
-same run with every track snapped to the true projection of its point.
+"""What exact feature tracks would buy the trajectory: the sparse system with its KLT tracks and with exact ones.
+
+``dit-slam`` (sparse) with the front end's tracks, against the same run with every track snapped to the true
+projection of its point.
 
     python benchmarks/track_oracle.py --sequences DIR [DIR ...] --work DIR [--out F.json]
 
@@ -119,12 +121,18 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", required=True, help="folder for the runs' outputs")
     ap.add_argument("--out", default=None, help="JSON path")
     args = ap.parse_args(argv)
+    from runtime.io.euroc import read_euroc
     from runtime.run import _preload
 
     paths = [Path(s) for s in args.sequences]
     for p in paths:
         if not ((p / "mav0" / "depth0").is_dir() and (p / "sim_info.json").is_file()):
             sys.exit(f"track_oracle: {p} is not a dit-sim euroc sequence (mav0/depth0, sim_info.json)")
+        if float(read_euroc(p).camera.line_delay_s or 0.0) > 0:
+            sys.exit(
+                f"track_oracle: {p} has a rolling shutter (line_delay_s in cam0's sensor.yaml); "
+                "exact tracks need a global shutter"
+            )
     _preload()
     rows = {}
     print("| sequence | SE(3) KLT | SE(3) exact | Sim(3) KLT | Sim(3) exact | tracks dropped |")

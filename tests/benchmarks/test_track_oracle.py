@@ -1,6 +1,7 @@
 """benchmarks/track_oracle.py: the tracker's pixels replaced by the true projections of their points."""
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -53,3 +54,10 @@ def test_a_rolling_shutter_sequence_is_refused(ideal, tmp_path):
         pass
     with pytest.raises(SystemExit, match="not a dit-sim euroc sequence"):
         main(["--sequences", str(tmp_path), "--work", str(tmp_path / "w")])
+    rolling = tmp_path / "rs"
+    shutil.copytree(ideal, rolling)
+    yaml = rolling / "mav0" / "cam0" / "sensor.yaml"
+    yaml.write_text(yaml.read_text() + "line_delay_s: 1.0e-5\n")
+    with pytest.raises(SystemExit, match="rolling shutter"):
+        main(["--sequences", str(rolling), "--work", str(tmp_path / "w")])
+    assert not (tmp_path / "w").exists()  # refused before any run

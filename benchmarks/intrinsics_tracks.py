@@ -6,7 +6,7 @@ The adjustment on the front end's tracks, on the same tracks made exact, and on 
 
 Each DIR is a sequence rendered by ``dit-sim euroc`` (``mav0/depth0``, ground truth, ``sim_info.json`` with the
 ``render_camera`` and ``time_offset_s``; an ``ideal=true`` sequence's written camera is the true one). The first pass
-of ``dit-slam``'s intrinsics refinement runs as in :func:`runtime.run._refine_intrinsics` (the default settings),
+of ``dit-slam``'s intrinsics refinement runs (:func:`runtime.run.first_pass`, the default settings),
 then :func:`runtime.calibration.refine_intrinsics` solves on:
 
 * ``tracks``: the first pass's tracks, as ``dit-slam`` does;
@@ -33,20 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import write_json
-from benchmarks.track_drift import _bilinear, true_camera
-
-
-def first_pass(seq, cfg):
-    """The intrinsics refinement's first pass (``dit-slam``'s): the live system, its IMU, posed stamps and poses."""
-    from runtime.live import LiveSlam
-    from runtime.run import _run_frames
-
-    ts = np.asarray(seq.frame_ts, dtype=np.int64)
-    n1 = int(np.searchsorted(ts, int(ts[0] + cfg.intrinsics.seconds * 1e9), "right"))
-    live = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg)
-    live.system.feature_log = []
-    _run_frames(live, seq, n1, None, False)
-    return live, *live.system.trajectory()
+from benchmarks.track_drift import back_project, project, time_offset_ns, true_camera, true_pose
+from runtime.run import first_pass
 
 
 def exact_features(seq, features: list, cam, offset_ns: int) -> list:
@@ -55,26 +43,19 @@ def exact_features(seq, features: list, cam, offset_ns: int) -> list:
     from runtime.frontend.tracking import FrameFeatures
 
     index = {int(t): i for i, t in enumerate(np.asarray(seq.frame_ts, dtype=np.int64))}
-    lo, hi = int(seq.gt.ts[0]), int(seq.gt.ts[-1])
     points: dict[int, np.ndarray | None] = {}
     out = []
     for f in features:
         i = index[int(f.ts)]
-        T_w_c = seq.gt_pose_at(min(max(int(f.ts) + offset_ns, lo), hi)) @ seq.T_b_c
+        T_w_c = true_pose(seq, f.ts, offset_ns) @ seq.T_b_c
         depth = None
         for tid, uv in zip(f.ids.tolist(), seq.camera.project(np.c_[f.xn, np.ones(len(f.xn))])[0], strict=True):
-            if tid in points:
-                continue
-            depth = seq.depth(i) if depth is None else depth
-            z = _bilinear(depth, uv)
-            xn = cam.pixel_to_normalized(uv[None])[0]
-            points[tid] = T_w_c[:3, :3] @ (np.array([xn[0], xn[1], 1.0]) * z) + T_w_c[:3, 3] if z > 0 else None
+            if tid not in points:
+                depth = seq.depth(i) if depth is None else depth
+                points[tid] = back_project(depth, uv, cam, T_w_c)
         nan = np.full(3, np.nan)
         X = np.array([nan if points[t] is None else points[t] for t in f.ids.tolist()]).reshape(-1, 3)
-        X_c = (X - T_w_c[:3, 3]) @ T_w_c[:3, :3]
-        with np.errstate(invalid="ignore"):
-            q, ok = cam.project(X_c)
-            ok &= np.isfinite(X_c[:, 2]) & (X_c[:, 2] > 0.1)
+        q, ok = project(cam, T_w_c, X)
         xn = seq.camera.pixel_to_normalized(q[ok])
         out.append(FrameFeatures(f.ts, f.ids[ok], q[ok], xn, q[ok], f.flow_px, f.n_lost))
     return out
@@ -119,9 +100,10 @@ def one_sequence(path: Path, pieces: list[int]) -> dict:
     seq = read_euroc(path)
     info = json.loads((path / "sim_info.json").read_text())
     cam = true_camera(seq, info)
-    offset_ns = int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
+    offset_ns = time_offset_ns(info)
     cfg = SlamConfig()
-    live, ts, T = first_pass(seq, cfg)
+    live, _ = first_pass(seq, cfg, len(seq))
+    ts, T = live.system.trajectory()
 
     def solve(features, poses=T, tracks=None):
         with mock.patch.object(calibration, "tracks_from_features", tracks or calibration.tracks_from_features):
@@ -132,8 +114,7 @@ def one_sequence(path: Path, pieces: list[int]) -> dict:
         return errors(replace(seq.camera, fx=fx, fy=fy, cx=cx, cy=cy), cam)
 
     exact = exact_features(seq, live.system.feature_log, cam, offset_ns)
-    lo, hi = int(seq.gt.ts[0]), int(seq.gt.ts[-1])
-    T_true = np.array([seq.gt_pose_at(min(max(int(t) + offset_ns, lo), hi)) for t in ts])
+    T_true = np.array([true_pose(seq, t, offset_ns) for t in ts])
     rows = {"written": errors(seq.camera, cam), "tracks": solve(live.system.feature_log)}
     rows["exact"] = solve(exact)
     rows["exact, true poses"] = solve(exact, T_true)

@@ -45,6 +45,37 @@ def true_camera(seq, info: dict):
     return replace(seq.camera, fx=rc[0], fy=rc[1], cx=rc[2], cy=rc[3], dist=tuple(rc[4:8])) if rc else seq.camera
 
 
+def time_offset_ns(info: dict) -> int:
+    """``sim_info.json``'s camera time offset [ns]: the image stamped ``t`` shows the scene at ``t`` plus it."""
+    return int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
+
+
+def true_pose(seq, ts_ns: int, offset_ns: int) -> np.ndarray:
+    """(4, 4) true body pose ``T_w_b`` of the image stamped ``ts_ns``: at its true time, held inside the ground
+    truth's range."""
+    return seq.gt.pose_at(min(max(int(ts_ns) + offset_ns, int(seq.gt.ts[0])), int(seq.gt.ts[-1])))
+
+
+def back_project(depth: np.ndarray, uv: np.ndarray, camera, T_w_c: np.ndarray) -> np.ndarray | None:
+    """The world point (3,) that pixel ``uv`` of ``camera`` at ``T_w_c`` sees at the rendered ``depth`` (None on a
+    depth edge, outside the image or without depth; :func:`_bilinear`)."""
+    z = _bilinear(depth, uv)
+    if z <= 0:
+        return None
+    xn = camera.pixel_to_normalized(np.asarray(uv, np.float64)[None])[0]
+    return T_w_c[:3, :3] @ (np.array([xn[0], xn[1], 1.0]) * z) + T_w_c[:3, 3]
+
+
+def project(camera, T_w_c: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of world points (N, 3) in ``camera`` at ``T_w_c`` and the mask of those that project: rows of
+    NaN (no point) and points nearer than 0.1 m in front of the camera do not."""
+    X_c = (X - T_w_c[:3, 3]) @ T_w_c[:3, :3]
+    with np.errstate(invalid="ignore"):
+        q, ok = camera.project(X_c)
+        ok &= np.isfinite(X_c[:, 2]) & (X_c[:, 2] > 0.1)
+    return q, ok
+
+
 def _bilinear(depth: np.ndarray, uv: np.ndarray) -> float:
     """Depth at a subpixel (2,), 0 outside the image or next to a pixel without depth, or across an edge."""
     x0, y0 = int(np.floor(uv[0])), int(np.floor(uv[1]))
@@ -63,9 +94,8 @@ def track_errors(seq, line_delay_s: float, frames: int | None = None) -> dict[in
 
     info = json.loads((Path(seq.root) / "sim_info.json").read_text())
     true_cam = true_camera(seq, info)
-    offset_ns = int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
+    offset_ns = time_offset_ns(info)
     tracker = FeatureTracker(seq.camera, seq.T_b_c, cfg=TrackerConfig(line_delay_s=line_delay_s))
-    t_lo, t_hi = int(seq.gt.ts[0]), int(seq.gt.ts[-1])
     points: dict[int, tuple[int, np.ndarray] | None] = {}
     seen: set[int] = set()
     errors: dict[int, list[float]] = {}
@@ -76,7 +106,7 @@ def track_errors(seq, line_delay_s: float, frames: int | None = None) -> dict[in
         tracker.track(ts, image)
         if tracker.n_tracks < MIN_TRACKS:
             tracker.replenish(ts, image)
-        T_w_c = seq.gt.pose_at(min(max(ts + offset_ns, t_lo), t_hi)) @ seq.T_b_c
+        T_w_c = true_pose(seq, ts, offset_ns) @ seq.T_b_c
         uv_all = tracker.rolling_shutter_pixels()
         depth = None
         for tid, uv in zip(tracker.ids.tolist(), uv_all, strict=True):
@@ -85,12 +115,8 @@ def track_errors(seq, line_delay_s: float, frames: int | None = None) -> dict[in
                 continue
             if tid not in points:
                 depth = seq.depth(i) if depth is None else depth
-                z = _bilinear(depth, uv)
-                if z <= 0:
-                    points[tid] = None
-                    continue
-                xn = true_cam.pixel_to_normalized(uv[None])[0]
-                points[tid] = (i, T_w_c[:3, :3] @ (np.array([xn[0], xn[1], 1.0]) * z) + T_w_c[:3, 3])
+                X = back_project(depth, uv, true_cam, T_w_c)
+                points[tid] = None if X is None else (i, X)
                 continue
             p = points[tid]
             if p is None:

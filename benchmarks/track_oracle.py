@@ -9,7 +9,7 @@ Each DIR is a global-shutter sequence rendered by ``dit-sim euroc`` (``mav0/dept
 ``sim_info.json``). In the ``exact`` arm the KLT runs as always, and after each step every track's pixel is replaced
 by the projection of its point through the rendered camera at the image's true time (``time_offset_s``): what a
 tracker without drift would report. A track's point is fixed the first time it is tracked, by back-projecting
-its pixel with the rendered depth (:func:`benchmarks.track_drift._bilinear`). A track whose first pixel lies on a
+its pixel with the rendered depth (:func:`benchmarks.track_drift.back_project`). A track whose first pixel lies on a
 depth edge has no such point (a corner made by an occlusion is not a point of the scene); it is dropped. So the arm
 is exact tracks without the edge corners. Everything else is the default system, the intrinsics refinement's
 first pass included. The difference between the arms bounds what a better tracker could gain on these sequences.
@@ -28,7 +28,7 @@ from unittest import mock
 import numpy as np
 
 from benchmarks.common import slam_machine, write_json
-from benchmarks.track_drift import _bilinear, true_camera
+from benchmarks.track_drift import back_project, project, time_offset_ns, true_camera, true_pose
 
 __all__ = ["ExactTracks", "exact_tracks", "main"]
 
@@ -38,10 +38,9 @@ class ExactTracks:
 
     def __init__(self, seq, info: dict) -> None:
         self.camera = true_camera(seq, info)
-        self.offset_ns = int(round(float(info.get("time_offset_s") or 0.0) * 1e9))
+        self.offset_ns = time_offset_ns(info)
         self.seq = seq
         self.index = {int(t): i for i, t in enumerate(np.asarray(seq.frame_ts, dtype=np.int64))}
-        self.range = int(seq.gt.ts[0]), int(seq.gt.ts[-1])
         self.points: dict[int, np.ndarray | None] = {}  # of the tracker snapped last (track ids are per tracker)
         self.snapped = self.dropped = 0
 
@@ -50,21 +49,16 @@ class ExactTracks:
         i = self.index.get(int(ts))
         if i is None or tracker.ids.size == 0:
             return
-        T = self.seq.gt_pose_at(int(np.clip(int(ts) + self.offset_ns, *self.range))) @ self.seq.T_b_c
+        T = true_pose(self.seq, ts, self.offset_ns) @ self.seq.T_b_c
         self.points = tracker.__dict__.setdefault("_exact_points", {})  # the first pass's tracker has its own ids
         depth = None
         for tid, uv in zip(tracker.ids.tolist(), tracker.uv.astype(np.float64), strict=True):
             if tid not in self.points:
                 depth = self.seq.depth(i) if depth is None else depth
-                z = _bilinear(depth, uv)
-                xn = self.camera.pixel_to_normalized(uv[None])[0]
-                self.points[tid] = T[:3, :3] @ (np.array([xn[0], xn[1], 1.0]) * z) + T[:3, 3] if z > 0 else None
+                self.points[tid] = back_project(depth, uv, self.camera, T)
         nan = np.full(3, np.nan)
         X = np.array([nan if self.points[t] is None else self.points[t] for t in tracker.ids.tolist()])
-        X_c = (X - T[:3, 3]) @ T[:3, :3]
-        with np.errstate(invalid="ignore"):
-            q, ok = self.camera.project(X_c)
-            ok &= np.isfinite(X_c[:, 2]) & (X_c[:, 2] > 0.1)
+        q, ok = project(self.camera, T, X)
         self.snapped += int(ok.sum())
         self.dropped += int((~ok).sum())
         tracker.ids, tracker.uv, tracker.vel = tracker.ids[ok], q[ok].astype(np.float32), tracker.vel[ok]

@@ -225,13 +225,7 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, cache
         log.info("intrinsics: kept the written calibration (%s); no first pass", why)
         return seq, {"refined": False, "reason": why}
     t0 = time.perf_counter()
-    ts = np.asarray(seq.frame_ts, dtype=np.int64)
-    n1 = min(n, int(np.searchsorted(ts, int(ts[0] + c.seconds * 1e9), "right")))
-    log.info("intrinsics: a first sparse pass over %d frames (%.1f s) to refine the camera", n1, c.seconds)
-    first = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg)
-    first.system.feature_log = []
-    read = cache.keep if cache is not None else None
-    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics", read=read)
+    first, n1 = first_pass(seq, cfg, n, progress, stop, read=cache.keep if cache is not None else None)
     if stop is not None and stop.signal is not None:
         return seq, {"refined": False, "reason": f"interrupted by {stop.signal}"}
     traj_ts, traj_T = first.system.trajectory()
@@ -249,6 +243,19 @@ def _refine_intrinsics(seq, cfg: SlamConfig, n: int, progress: bool, stop, cache
     report = {"refined": res.accepted, "first_pass_frames": n1, **res.report}
     report["seconds_total"] = round(time.perf_counter() - t0, 3)
     return (CameraView(seq, res.camera, res.time_offset_ns) if res.accepted else seq), report
+
+
+def first_pass(seq, cfg: SlamConfig, n: int, progress: bool = False, stop=None, read=None) -> tuple[LiveSlam, int]:
+    """The intrinsics refinement's first sparse pass: a live system over the first ``cfg.intrinsics.seconds`` of the
+    sequence (at most ``n`` frames), logging the front end's features; returns it and the frames it took.
+    ``stop`` and ``read``: as for :func:`_run_frames`."""
+    ts = np.asarray(seq.frame_ts, dtype=np.int64)
+    n1 = min(n, int(np.searchsorted(ts, int(ts[0] + cfg.intrinsics.seconds * 1e9), "right")))
+    log.info("intrinsics: a first sparse pass over %d frames (%.1f s) to refine the camera", n1, cfg.intrinsics.seconds)
+    first = LiveSlam(seq.camera, seq.T_b_c, seq.imu, cfg)
+    first.system.feature_log = []
+    _run_frames(first, seq, n1, None, progress, stop, desc="intrinsics", read=read)
+    return first, n1
 
 
 def _run_frames(

@@ -27,14 +27,15 @@ def _truth(t):
     return Rw, p, v
 
 
-def _write_source(root: Path, step: np.ndarray | None = None) -> int:
+def _write_source(root: Path, step: np.ndarray | None = None, truth=_truth) -> int:
     """A 6 s circle at 200 Hz ground truth (biases 0.01 rad/s, 0.05 m/s^2) and 20 Hz tiny images (4 s); ``step``
-    [m] is added to every ground-truth position from t = 3 s on (a recording glitch). Returns t0 [ns]."""
+    [m] is added to every ground-truth position from t = 3 s on (a recording glitch); ``truth``: ``t -> (R_w_b,
+    p, v)`` in place of the circle. Returns t0 [ns]."""
     mav0 = root / "mav0"
     t0 = 1_600_000_000_000_000_000
     ts = t0 + 5_000_000 * np.arange(1200, dtype=np.int64)
     t = (ts - t0) * 1e-9
-    Rw, p, v = _truth(t)
+    Rw, p, v = truth(t)
     if step is not None:
         p = p + step * (t >= 3.0)[:, None]
     bias = np.tile([0.01, -0.01, 0.01, 0.05, -0.05, 0.05], (len(t), 1))

@@ -30,9 +30,10 @@ from benchmarks.common import slam_machine, write_json
 __all__ = ["scale_profile", "profile_sequence", "main"]
 
 
-def scale_profile(seq, ts: np.ndarray, T_w_b: np.ndarray, noise_raise: float = 1.0) -> tuple[float, float]:
+def scale_profile(seq, ts: np.ndarray, T_w_b: np.ndarray, noise_raise: float = 1.0, imu=None) -> tuple[float, float]:
     """``(s*, sd)``: the scale of ``T_w_b``'s positions (N, 4, 4) at ``ts`` (N,) ns that ``seq``'s IMU prefers,
-    and its standard deviation from the profile's curvature (``nan`` when the profile is flat)."""
+    and its standard deviation from the profile's curvature (``nan`` when the profile is flat). ``imu``: ``seq``'s
+    :class:`runtime.backend.imu.ImuStream` when the caller has it (built here otherwise)."""
     import gtsam
     from scipy.optimize import minimize_scalar
 
@@ -41,7 +42,7 @@ def scale_profile(seq, ts: np.ndarray, T_w_b: np.ndarray, noise_raise: float = 1
     if ts.size < 3:
         raise ValueError(f"{ts.size} poses: a scale profile needs at least 3")
     X, V, B = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B
-    imu = ImuStream.from_sequence(seq)
+    imu = ImuStream.from_sequence(seq) if imu is None else imu
     params = preintegration_params(seq.imu, scales=(noise_raise, noise_raise))
     zero = make_bias(np.zeros(6))
     pims = []
@@ -79,6 +80,7 @@ def scale_profile(seq, ts: np.ndarray, T_w_b: np.ndarray, noise_raise: float = 1
 
 def profile_sequence(root: Path, segment_s: float, raises: list[float], step: int = 5) -> dict:
     """The scale profile of ``root``'s ground truth over the whole sequence and over ``segment_s`` pieces."""
+    from runtime.backend.imu import ImuStream
     from runtime.io.euroc import read_euroc
 
     seq = read_euroc(root)
@@ -87,14 +89,15 @@ def profile_sequence(root: Path, segment_s: float, raises: list[float], step: in
     ts = seq.frame_ts[seq.gt.covers(seq.frame_ts)][::step]
     ts = ts[(ts >= seq.imu_ts[0]) & (ts <= seq.imu_ts[-1])]
     T = seq.gt_pose_at(ts)
+    imu = ImuStream.from_sequence(seq)  # one stream for every profile
     t_s = (ts - ts[0]) * 1e-9
     out = {"poses": int(ts.size), "duration_s": float(t_s[-1]), "raises": {}}
     for r in raises:
-        row = {"whole": scale_profile(seq, ts, T, r), "segments": []}
+        row = {"whole": scale_profile(seq, ts, T, r, imu), "segments": []}
         for a in np.arange(0.0, t_s[-1] - 0.5 * segment_s, segment_s):
             m = (t_s >= a) & (t_s <= a + segment_s)
             if m.sum() >= 3:
-                row["segments"].append([float(a), *scale_profile(seq, ts[m], T[m], r)])
+                row["segments"].append([float(a), *scale_profile(seq, ts[m], T[m], r, imu)])
         out["raises"][f"x{r:g}"] = row
     return out
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import write_json
-from benchmarks.track_drift import back_project, project, time_offset_ns, true_camera, true_pose
+from benchmarks.track_drift import time_offset_ns, true_camera, true_pose, true_projections
 from runtime.run import first_pass
 
 
@@ -48,14 +48,8 @@ def exact_features(seq, features: list, cam, offset_ns: int) -> list:
     for f in features:
         i = index[int(f.ts)]
         T_w_c = true_pose(seq, f.ts, offset_ns) @ seq.T_b_c
-        depth = None
-        for tid, uv in zip(f.ids.tolist(), seq.camera.project(np.c_[f.xn, np.ones(len(f.xn))])[0], strict=True):
-            if tid not in points:
-                depth = seq.depth(i) if depth is None else depth
-                points[tid] = back_project(depth, uv, cam, T_w_c)
-        nan = np.full(3, np.nan)
-        X = np.array([nan if points[t] is None else points[t] for t in f.ids.tolist()]).reshape(-1, 3)
-        q, ok = project(cam, T_w_c, X)
+        uv = seq.camera.project(np.c_[f.xn, np.ones(len(f.xn))])[0]
+        q, ok = true_projections(seq, i, f.ids, uv, points, cam, T_w_c)
         xn = seq.camera.pixel_to_normalized(q[ok])
         out.append(FrameFeatures(f.ts, f.ids[ok], q[ok], xn, q[ok], f.flow_px, f.n_lost))
     return out

@@ -76,6 +76,22 @@ def project(camera, T_w_c: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.nd
     return q, ok
 
 
+def true_projections(
+    seq, i: int, ids: np.ndarray, uv: np.ndarray, points: dict, camera, T_w_c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of the points of tracks ``ids`` (N,) in image ``i`` of ``seq`` (``camera`` at ``T_w_c``) and the
+    mask of those that project. A track's point is fixed at its first sight: its pixel in ``uv`` (N, 2) back-projected
+    at image ``i``'s rendered depth, kept in ``points`` (``id -> point``, None on a depth edge: no projection)."""
+    depth = None
+    for tid, p in zip(ids.tolist(), uv, strict=True):
+        if tid not in points:
+            depth = seq.depth(i) if depth is None else depth
+            points[tid] = back_project(depth, p, camera, T_w_c)
+    nan = np.full(3, np.nan)
+    X = np.array([nan if points[t] is None else points[t] for t in ids.tolist()]).reshape(-1, 3)
+    return project(camera, T_w_c, X)
+
+
 def _bilinear(depth: np.ndarray, uv: np.ndarray) -> float:
     """Depth at a subpixel (2,), 0 outside the image or next to a pixel without depth, or across an edge."""
     x0, y0 = int(np.floor(uv[0])), int(np.floor(uv[1]))

@@ -28,7 +28,7 @@ from unittest import mock
 import numpy as np
 
 from benchmarks.common import slam_machine, write_json
-from benchmarks.track_drift import back_project, project, time_offset_ns, true_camera, true_pose
+from benchmarks.track_drift import time_offset_ns, true_camera, true_pose, true_projections
 
 __all__ = ["ExactTracks", "exact_tracks", "main"]
 
@@ -51,14 +51,8 @@ class ExactTracks:
             return
         T = true_pose(self.seq, ts, self.offset_ns) @ self.seq.T_b_c
         self.points = tracker.__dict__.setdefault("_exact_points", {})  # the first pass's tracker has its own ids
-        depth = None
-        for tid, uv in zip(tracker.ids.tolist(), tracker.uv.astype(np.float64), strict=True):
-            if tid not in self.points:
-                depth = self.seq.depth(i) if depth is None else depth
-                self.points[tid] = back_project(depth, uv, self.camera, T)
-        nan = np.full(3, np.nan)
-        X = np.array([nan if self.points[t] is None else self.points[t] for t in tracker.ids.tolist()])
-        q, ok = project(self.camera, T, X)
+        uv = tracker.uv.astype(np.float64)
+        q, ok = true_projections(self.seq, i, tracker.ids, uv, self.points, self.camera, T)
         self.snapped += int(ok.sum())
         self.dropped += int((~ok).sum())
         tracker.ids, tracker.uv, tracker.vel = tracker.ids[ok], q[ok].astype(np.float32), tracker.vel[ok]

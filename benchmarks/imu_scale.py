@@ -1,6 +1,7 @@
 """How well a sequence's IMU fixes the metric scale of its true trajectory: the profile likelihood of the scale.
 
     python benchmarks/imu_scale.py --sequences DIR [DIR ...] [--segment 5] [--raise 1 5 10] [--out F.json]
+    python benchmarks/imu_scale.py --runs RUN_DIR [RUN_DIR ...] [--raise 10] [--out F.json]
 
 Each DIR is an EuRoC-layout sequence with an IMU and a ground truth (e.g. ``dit-sim imu`` completions of the MH_05
 excerpt). The ground truth's poses every ``--step`` frames are held fixed with their positions multiplied by a
@@ -15,6 +16,15 @@ scale error that its noise allows. The bias random walk must be the stated one: 
 misfit of the runtime's sample hold (each sample held over the next period); with a walk near zero the scale takes it
 (1.06 on the fast synthetic path of ``tests/benchmarks/test_imu_scale.py`` with near-exact samples, stated as
 such, and a walk of 1e-12). Prints a table and writes JSON.
+
+``--runs`` asks the same of an estimate: each RUN_DIR is a ``dit-slam`` output (``keyframes.txt``, and
+``metrics.json`` naming the sequence). The profile is taken over the run's keyframe poses as they are (``ours``),
+with their rotations replaced by the truth's (``true_R``), and with their positions replaced by the truth's brought
+into the run's frame at the run's scale (``true_p``: the best Sim(3) of the estimate onto the truth, inverted),
+beside the run's Sim(3) scale ``s`` (truth = ``s`` x estimate). An estimator that used the IMU's scale information
+fully would leave ``s`` near the truth's own ``s*``; where ``true_p``'s ``s*`` is near ``s`` but ``ours`` is near 1,
+the IMU would correct the run's scale if its positions had the true shape, and agrees with the wrong scale given
+the shape the run has.
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ import numpy as np
 
 from benchmarks.common import slam_machine, write_json
 
-__all__ = ["scale_profile", "profile_sequence", "main"]
+__all__ = ["scale_profile", "profile_sequence", "profile_run", "main"]
 
 
 def scale_profile(seq, ts: np.ndarray, T_w_b: np.ndarray, noise_raise: float = 1.0, imu=None) -> tuple[float, float]:
@@ -102,14 +112,68 @@ def profile_sequence(root: Path, segment_s: float, raises: list[float], step: in
     return out
 
 
+def profile_run(run: Path, raises: list[float]) -> dict:
+    """The scale profile of a ``dit-slam`` run's keyframes: as estimated, with the true rotations, and with the
+    true positions at the run's scale (module docstring)."""
+    import json
+
+    from benchmarks.peers.diagnose import umeyama
+    from runtime.backend.imu import ImuStream
+    from runtime.io.euroc import read_euroc
+    from runtime.io.tum import read_tum
+
+    metrics = json.loads((run / "metrics.json").read_text())
+    seq = read_euroc(metrics["sequence"])
+    if seq.gt is None:
+        raise ValueError(f"{run}: its sequence has no ground truth")
+    ts, T = read_tum(run / "keyframes.txt")
+    keep = seq.gt.covers(ts) & (ts >= seq.imu_ts[0]) & (ts <= seq.imu_ts[-1])
+    ts, T = ts[keep], T[keep]
+    G = seq.gt_pose_at(ts)
+    s, R, t = umeyama(T[:, :3, 3], G[:, :3, 3])  # truth = s R estimate + t
+    true_R, true_p = T.copy(), T.copy()
+    true_R[:, :3, :3] = np.einsum("ij,njk->nik", R.T, G[:, :3, :3])  # the truth's rotations in the run's frame
+    true_p[:, :3, 3] = (G[:, :3, 3] - t) @ R / s
+    imu = ImuStream.from_sequence(seq)
+    out = {"sequence": str(seq.root), "keyframes": int(ts.size), "sim3_scale": s, "raises": {}}
+    out |= {k: metrics[k] for k in ("ate_se3_rmse_m", "ate_sim3_rmse_m") if k in metrics}  # the run's, as it wrote them
+    for r in raises:
+        out["raises"][f"x{r:g}"] = {
+            name: scale_profile(seq, ts, M, r, imu) for name, M in (("ours", T), ("true_R", true_R), ("true_p", true_p))
+        } | {"truth": scale_profile(seq, ts, G, r, imu)}
+    return out
+
+
+def _main_runs(args) -> dict:
+    rows = {}
+    print("| run | raise | Sim(3) scale s | s*: ours | true rotations | true positions | truth |")
+    print("|---|---|---|---|---|---|---|")
+    for r in args.runs:
+        row = rows[str(r)] = profile_run(Path(r), args.raises)
+        for key, v in row["raises"].items():
+            cells = " | ".join(f"{v[k][0]:.4f} ± {v[k][1]:.4f}" for k in ("ours", "true_R", "true_p", "truth"))
+            print(f"| {r} | {key} | {row['sim3_scale']:.4f} | {cells} |", flush=True)
+    return {"runs": args.runs, "rows": rows}
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sequences", nargs="+", required=True, help="EuRoC-layout folders with an IMU and ground truth")
+    what = ap.add_mutually_exclusive_group(required=True)
+    what.add_argument("--sequences", nargs="+", help="EuRoC-layout folders with an IMU and ground truth")
+    what.add_argument("--runs", nargs="+", help="dit-slam output folders: profile their keyframes instead")
     ap.add_argument("--segment", type=float, default=5.0, help="length of the pieces [s]")
     ap.add_argument("--raise", dest="raises", type=float, nargs="+", default=[1.0, 5.0, 10.0])
     ap.add_argument("--step", type=int, default=5, help="a pose every STEP frames")
     ap.add_argument("--out", default=None, help="JSON path")
     args = ap.parse_args(argv)
+    if args.runs:
+        for r in args.runs:
+            if not (Path(r) / "keyframes.txt").is_file() or not (Path(r) / "metrics.json").is_file():
+                sys.exit(f"imu_scale: {r} has no keyframes.txt or metrics.json (not a dit-slam output folder)")
+        doc = _main_runs(args) | {"machine": slam_machine()}
+        if args.out:
+            print(f"wrote {write_json(args.out, doc)}")
+        return doc
     for s in args.sequences:
         if not (Path(s) / "mav0" / "imu0").is_dir() or not (Path(s) / "mav0" / "state_groundtruth_estimate0").is_dir():
             sys.exit(f"imu_scale: {s} has no mav0/imu0 or mav0/state_groundtruth_estimate0")

@@ -78,3 +78,34 @@ def test_the_command_writes_whole_and_piecewise_profiles(source, tmp_path, capsy
 def test_a_folder_without_imu_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="no mav0/imu0"):
         main(["--sequences", str(tmp_path)])
+
+
+def test_a_run_at_a_wrong_scale_in_its_own_frame_is_asked_back_to_the_truth(source, tmp_path):
+    # a "run" whose keyframes are the truth 4 % short, yawed and moved: its Sim(3) scale is 1.04, and the exact
+    # IMU asks every variant of it (as it is, true rotations, true positions at its scale) to grow by 1.04
+    import json
+
+    from runtime.io.tum import write_tum
+
+    complete_imu(source, tmp_path / "exact", ideal=True)
+    seq = read_euroc(tmp_path / "exact")
+    ts, T = _poses(seq)
+    yaw = so3_exp(np.array([0.0, 0.0, 0.7]))
+    E = T.copy()
+    E[:, :3, :3] = yaw @ T[:, :3, :3]
+    E[:, :3, 3] = (T[:, :3, 3] @ yaw.T) / 1.04 + np.array([0.3, -1.0, 0.2])
+    run = tmp_path / "run"
+    run.mkdir()
+    write_tum(run / "keyframes.txt", ts, E)
+    (run / "metrics.json").write_text(json.dumps({"sequence": str(tmp_path / "exact")}))
+    doc = main(["--runs", str(run), "--raise", "1"])
+    row = doc["rows"][str(run)]
+    assert abs(row["sim3_scale"] - 1.04) < 1e-6 and row["keyframes"] == ts.size
+    for name in ("ours", "true_R", "true_p"):
+        assert abs(row["raises"]["x1"][name][0] - 1.04) < 3e-3, name
+    assert abs(row["raises"]["x1"]["truth"][0] - 1.0) < 2e-3
+
+
+def test_a_folder_that_is_not_a_run_is_refused(tmp_path):
+    with pytest.raises(SystemExit, match="not a dit-slam output folder"):
+        main(["--runs", str(tmp_path)])

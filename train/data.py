@@ -180,8 +180,10 @@ def ensure_synthetic_nyu(
 ) -> Path:
     """Return a synthetic NYU-layout root, rendering it first when it does not exist yet.
 
-    The set is written to a temporary sibling folder and renamed when complete, so an interrupted generation
-    never leaves a half-written set behind, and concurrent callers (one per node in DDP) cannot see one.
+    The set is written to a temporary sibling folder ``<root>.tmp-<pid>`` and renamed when complete, so an
+    interrupted generation never leaves a half-written set behind, and concurrent callers (one per node in DDP)
+    cannot see one. The temporary folder is removed when the rendering fails or is interrupted; those of processes
+    that no longer exist (killed outright) are removed by the next call.
 
     Args:
         root: target folder; None = :func:`default_sim_root`.
@@ -191,6 +193,7 @@ def ensure_synthetic_nyu(
         realism: realistic rooms (hand-held and tabletop) through the camera physics (``sim.nyu``).
     """
     root = Path(root).expanduser() if root is not None else default_sim_root(n_train, n_val, seed, realism)
+    _remove_dead_tmp(root)
     if _complete(root):
         return root
     if root.exists() and any(root.iterdir()):
@@ -202,6 +205,30 @@ def ensure_synthetic_nyu(
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = root.with_name(f"{root.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        return _render_into(root, tmp, write_nyu_dataset, n_train, n_val, seed, progress, realism)
+    except BaseException:  # a failure or Ctrl-C: leave no temporary folder behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _remove_dead_tmp(root: Path) -> None:
+    """Remove ``<root>.tmp-<pid>`` folders whose process no longer exists (a render killed outright)."""
+    for old in root.parent.glob(f"{root.name}.tmp-*"):
+        pid = old.name.rsplit("-", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(old, ignore_errors=True)
+            log.info("removed %s, left by a render that did not finish", old)
+        except OSError:  # alive, someone else's: leave it
+            pass
+
+
+def _render_into(root: Path, tmp: Path, write_nyu_dataset, n_train, n_val, seed, progress, realism) -> Path:
+    """Render the set into ``tmp`` and rename it to ``root`` (:func:`ensure_synthetic_nyu`)."""
     log.info(
         "rendering the synthetic NYU-layout set (%d train + %d val frames, seed %d%s) into %s",
         n_train,

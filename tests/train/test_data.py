@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 import types
 from pathlib import Path
@@ -118,3 +120,24 @@ def test_synthetic_data_generated_once_atomically(tmp_path, monkeypatch):
     (other / "x").mkdir(parents=True)
     with pytest.raises(FileExistsError, match="no train/ and val/"):
         ensure_synthetic_nyu(other, 4, 2)
+
+
+def test_a_failed_or_killed_render_leaves_no_temporary_folder(tmp_path, monkeypatch):
+    def failing_writer(out, n_train=1, n_val=1, seed=0, progress=True):
+        (Path(out) / "train").mkdir(parents=True)  # half-written, then the renderer fails
+        raise RuntimeError("renderer crashed")
+
+    monkeypatch.setitem(sys.modules, "sim.nyu", types.SimpleNamespace(write_nyu_dataset=failing_writer))
+    root = tmp_path / "cache" / "nyu-sim-3-2-1"
+    with pytest.raises(RuntimeError, match="renderer crashed"):
+        ensure_synthetic_nyu(root, 2, 1, seed=3)
+    assert sorted(p.name for p in root.parent.iterdir()) == []
+    # a folder left by a process killed outright is removed by the next call; a live process's is kept
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (root.parent / f"{root.name}.tmp-{dead.pid}" / "train").mkdir(parents=True)
+    live = root.parent / f"{root.name}.tmp-{os.getppid()}"
+    live.mkdir()
+    with pytest.raises(RuntimeError, match="renderer crashed"):
+        ensure_synthetic_nyu(root, 2, 1, seed=3)
+    assert sorted(p.name for p in root.parent.iterdir()) == [live.name]

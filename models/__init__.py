@@ -24,7 +24,6 @@ def build_model(
     width: int = 224,
     relative: bool = False,
     image_contrast: float | None = None,
-    image_local_sigma: float | None = None,
 ) -> nn.Module:
     """Build one of ``dit | codevio8 | codevio32 | fastdepth`` for a modality ``rgb | rgbs | gray | grays``.
 
@@ -40,8 +39,6 @@ def build_model(
             sparse depth.
         image_contrast: ``dit`` only: each input image's contrast is matched to this standard deviation inside
             the network (:func:`~models.blocks.match_contrast`); None = the image as it comes.
-        image_local_sigma: ``dit`` only: the image normalised by its local mean and spread, Gaussian of this many
-            pixels at network resolution (:func:`~models.blocks.local_contrast`); None = the fixed normalisation.
 
     >>> m = build_model("codevio32", "rgbs", width_mult=0.25, height=64, width=96)
     >>> (m.code_dim, m.in_channels, m.modality, m.attention)
@@ -55,8 +52,6 @@ def build_model(
     default = MODEL_NAMES[name]
     if image_contrast is not None and name != "dit":
         raise ValueError(f"image_contrast needs model dit, got {name}")
-    if image_local_sigma is not None and name != "dit":
-        raise ValueError(f"image_local_sigma needs model dit, got {name}")
     relative = bool(relative) and modality.endswith("s")  # without sparse input there is nothing to be relative to
     if name == "fastdepth":
         if code_dim is not None:
@@ -65,15 +60,7 @@ def build_model(
     if name == "dit":
         code = default if code_dim is None else code_dim
         return DiTNet(
-            cin,
-            code,
-            True,
-            width_mult,
-            height,
-            width,
-            relative=bool(relative),
-            image_contrast=image_contrast,
-            image_local_sigma=image_local_sigma,
+            cin, code, True, width_mult, height, width, relative=bool(relative), image_contrast=image_contrast
         )
     if code_dim is not None and code_dim != default:
         raise ValueError(f"{name} has code_dim {default}, got code_dim={code_dim!r} (use dit or codevio())")

@@ -265,63 +265,26 @@ def match_contrast(img: torch.Tensor, target_std: float, min_std: float = 0.01) 
     return (mean + (img - mean) * (target_std / std)).clamp(0.0, 1.0)
 
 
-def local_contrast(img: torch.Tensor, sigma_px: float, min_std: float = 0.02) -> torch.Tensor:
-    """Each image normalised by its local statistics: ``(img - m) / sqrt(v + min_std^2)``, ``m`` and ``v`` the
-    Gaussian-weighted (``sigma_px``, edges replicated) local mean and variance, per channel.
-
-    Keeps edges and texture and removes shading, exposure and contrast that vary over more than a few ``sigma_px``;
-    ``min_std`` (grey levels in [0, 1]) keeps a flat region's noise from being amplified.
-
-    An exposure change (gain and offset) changes nothing but the noise floor:
-
-    >>> x = torch.rand(1, 1, 32, 32)
-    >>> y1, y2 = local_contrast(x, 4.0), local_contrast(0.5 * x + 0.3, 4.0, min_std=0.01)
-    >>> bool((y1 - y2).abs().max() < 1e-5), bool(y1.mean().abs() < 0.1)
-    (True, True)
-    """
-    r = max(1, int(math.ceil(3.0 * sigma_px)))
-    t = torch.arange(-r, r + 1, dtype=img.dtype, device=img.device)
-    g = torch.exp(-0.5 * (t / sigma_px) ** 2)
-    g = g / g.sum()
-    c = img.shape[1]
-    kx, ky = g.view(1, 1, 1, -1).repeat(c, 1, 1, 1), g.view(1, 1, -1, 1).repeat(c, 1, 1, 1)
-
-    def blur(z: torch.Tensor) -> torch.Tensor:
-        z = nn.functional.conv2d(nn.functional.pad(z, (r, r, 0, 0), mode="replicate"), kx, groups=c)
-        return nn.functional.conv2d(nn.functional.pad(z, (0, 0, r, r), mode="replicate"), ky, groups=c)
-
-    d = img - blur(img)
-    return d / torch.sqrt(blur(d * d) + min_std * min_std)
-
-
 class _ImageInput(nn.Module):
     """The image part of the raw input, shared by the input normalisations: ``modality``, ``image_channels``, the
     fixed ``mean`` / ``std`` buffers and the optional contrast matching, applied by :meth:`image`."""
 
-    def __init__(self, modality: str, image_contrast: float | None = None, image_local_sigma: float | None = None):
+    def __init__(self, modality: str, image_contrast: float | None = None):
         super().__init__()
         if modality not in MODALITY_CHANNELS:
             raise ValueError(f"modality={modality!r} not in {sorted(MODALITY_CHANNELS)}")
         if image_contrast is not None and not 0.0 < float(image_contrast) <= 0.5:
             raise ValueError(f"image_contrast={image_contrast!r} must be None or a standard deviation in (0, 0.5]")
-        if image_local_sigma is not None and not float(image_local_sigma) > 0.0:
-            raise ValueError(f"image_local_sigma={image_local_sigma!r} must be None or a positive width in pixels")
-        if image_local_sigma is not None and image_contrast is not None:
-            raise ValueError("image_local_sigma and image_contrast exclude each other: set one of them")
         self.modality = modality
         rgb = modality.startswith("rgb")
         self.image_channels = 3 if rgb else 1
         self.register_buffer("mean", torch.tensor(RGB_MEAN if rgb else GRAY_MEAN).view(1, -1, 1, 1))
         self.register_buffer("std", torch.tensor(RGB_STD if rgb else GRAY_STD).view(1, -1, 1, 1))
         self.image_contrast = None if image_contrast is None else float(image_contrast)
-        self.image_local_sigma = None if image_local_sigma is None else float(image_local_sigma)
 
     def image(self, x: torch.Tensor) -> torch.Tensor:
-        """The image channels of the raw input, normalised (by :func:`local_contrast` when
-        ``image_local_sigma`` is set, else by the fixed mean and standard deviation)."""
+        """The image channels of the raw input, normalised."""
         img = x[:, : self.image_channels]
-        if self.image_local_sigma is not None:
-            return local_contrast(img, self.image_local_sigma)
         if self.image_contrast is not None:
             img = match_contrast(img, self.image_contrast)
         return (img - self.mean) / self.std
@@ -334,19 +297,11 @@ class InputNorm(_ImageInput):
     sparse-depth channel in metres (0 = no sample). Output: ``(image - mean) / std``, and for ``*s`` two more
     channels: the log depth mapped to [-1, 1] over [``depth_min``, ``depth_max``] (0 where no sample) and the
     sample mask (1 where a sample exists). With ``image_contrast`` the image first goes through
-    :func:`match_contrast`; with ``image_local_sigma`` it is :func:`local_contrast` instead of the fixed
-    normalisation.
+    :func:`match_contrast`.
     """
 
-    def __init__(
-        self,
-        modality: str,
-        depth_min: float,
-        depth_max: float,
-        image_contrast: float | None = None,
-        image_local_sigma: float | None = None,
-    ):
-        super().__init__(modality, image_contrast, image_local_sigma)
+    def __init__(self, modality: str, depth_min: float, depth_max: float, image_contrast: float | None = None):
+        super().__init__(modality, image_contrast)
         self.sparse = modality.endswith("s")
         self.depth_log = LogDepthNorm(depth_min, depth_max)
         self.out_channels = self.image_channels + (2 if self.sparse else 0)
@@ -397,20 +352,13 @@ class RelativeSparseNorm(_ImageInput):
     channel. None of them changes when every depth is multiplied by the same factor: the network sees relative
     depth only.
 
-    ``forward(x, fill)`` returns ``(x, scale (B, 1, 1, 1) [m])``. ``image_contrast``, ``image_local_sigma``: as in
-    :class:`InputNorm`.
+    ``forward(x, fill)`` returns ``(x, scale (B, 1, 1, 1) [m])``. ``image_contrast``: as in :class:`InputNorm`.
     """
 
-    def __init__(
-        self,
-        modality: str,
-        log_range: float = 3.0,
-        image_contrast: float | None = None,
-        image_local_sigma: float | None = None,
-    ):
+    def __init__(self, modality: str, log_range: float = 3.0, image_contrast: float | None = None):
         if modality not in MODALITY_CHANNELS or not modality.endswith("s"):
             raise ValueError(f"relative depth needs a sparse modality (grays, rgbs), got {modality!r}")
-        super().__init__(modality, image_contrast, image_local_sigma)
+        super().__init__(modality, image_contrast)
         self.sparse = True
         self.log_range = float(log_range)
         self.out_channels = self.image_channels + 3

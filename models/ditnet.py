@@ -101,16 +101,15 @@ class UNetStream(nn.Module):
         decoder_channels: tuple[int, ...] = DECODER_CHANNELS,
         relative: bool = False,
         image_contrast: float | None = None,
-        image_local_sigma: float | None = None,
     ):
         super().__init__()
         if len(decoder_channels) != len(FEATURE_STRIDES):
             raise ValueError(f"decoder_channels={decoder_channels!r} needs {len(FEATURE_STRIDES)} entries")
         self.relative = bool(relative)
         self.norm = (
-            RelativeSparseNorm(modality, image_contrast=image_contrast, image_local_sigma=image_local_sigma)
+            RelativeSparseNorm(modality, image_contrast=image_contrast)
             if relative
-            else InputNorm(modality, depth_min, depth_max, image_contrast, image_local_sigma)
+            else InputNorm(modality, depth_min, depth_max, image_contrast)
         )
         self.encoder = MobileNetEncoder(self.norm.out_channels, width_mult)
         dec = [scaled_channels(c, width_mult) for c in decoder_channels]
@@ -302,7 +301,6 @@ class DiTNet(nn.Module):
         code_injection: bool = True,
         relative: bool = False,
         image_contrast: float | None = None,
-        image_local_sigma: float | None = None,
     ):
         super().__init__()
         check_size(height, width)
@@ -318,18 +316,9 @@ class DiTNet(nn.Module):
         self.relative = bool(relative)
 
         self.prior_net = UNetStream(
-            self.modality,
-            width_mult,
-            attention,
-            depth_min,
-            depth_max,
-            decoder_channels,
-            relative,
-            image_contrast,
-            image_local_sigma,
+            self.modality, width_mult, attention, depth_min, depth_max, decoder_channels, relative, image_contrast
         )
         self.image_contrast = self.prior_net.norm.image_contrast
-        self.image_local_sigma = self.prior_net.norm.image_local_sigma
         ch = self.prior_net.channels
         gt_range = REL_GT_RANGE if relative else (depth_min, depth_max)
         self.recognition = DepthRecognition(code_dim, ch[0], height, width, width_mult * depth_encoder_width, *gt_range)
@@ -449,7 +438,6 @@ class DiTNet(nn.Module):
                 "image_mean": norm.mean.flatten().tolist(),
                 "image_std": norm.std.flatten().tolist(),
                 "image_contrast": self.image_contrast,
-                "image_local_sigma_px": self.image_local_sigma,
                 "sparse_depth": "metres, 0 = no sample" if norm.sparse else None,
                 "fill": "linear" if self.relative else None,
                 "sparse_normalisation": (

@@ -71,7 +71,9 @@ def cosine_schedule(
     )
 
 
-def constant_schedule(optimizer: torch.optim.Optimizer, total_steps: int = 0) -> torch.optim.lr_scheduler.LambdaLR:
+def constant_schedule(
+    optimizer: torch.optim.Optimizer, total_steps: int = 0
+) -> torch.optim.lr_scheduler.LambdaLR:
     """Constant learning rate (``total_steps`` is accepted for a uniform interface)."""
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
 
@@ -92,8 +94,6 @@ def net_spec(net: nn.Module) -> dict:
         spec["code_dim"] = getattr(net, "code_dim", None)
         if getattr(net, "image_contrast", None) is not None:
             spec["image_contrast"] = net.image_contrast
-        if getattr(net, "image_local_sigma", None) is not None:
-            spec["image_local_sigma"] = net.image_local_sigma
     return spec
 
 
@@ -298,7 +298,9 @@ def _median_prediction(gt: torch.Tensor) -> torch.Tensor:
     """Per-image constant prediction: the median of the valid ground truth (B, 1, H, W) [m]."""
     b = gt.shape[0]
     flat = gt.reshape(b, -1)
-    med = torch.stack([(row[row > 0].median() if bool((row > 0).any()) else row.new_tensor(1.0)) for row in flat])
+    med = torch.stack(
+        [(row[row > 0].median() if bool((row > 0).any()) else row.new_tensor(1.0)) for row in flat]
+    )
     return med.reshape(b, 1, 1, 1).expand_as(gt)
 
 

@@ -66,18 +66,9 @@ def test_relative_norm_is_scale_free():
         RelativeSparseNorm("gray")
 
 
-def _relative_net(seed=0, image_contrast=None, image_local_sigma=None):
+def _relative_net(seed=0, image_contrast=None):
     torch.manual_seed(seed)
-    net = build_model(
-        "dit",
-        "grays",
-        width_mult=0.25,
-        height=H,
-        width=W,
-        relative=True,
-        image_contrast=image_contrast,
-        image_local_sigma=image_local_sigma,
-    )
+    net = build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True, image_contrast=image_contrast)
     with torch.no_grad():  # a decoder that visibly depends on the input and the code
         net.decoder.head.weight.normal_(0.0, 0.05)
         for m in net.decoder.modules():  # as benchmarks.common.standin_net: the decoder's statistics only
@@ -224,36 +215,3 @@ def test_image_contrast_makes_the_prior_blind_to_image_contrast(tmp_path):
         build_model("fastdepth", "grays", width_mult=0.25, height=H, width=W, image_contrast=0.2)
     with pytest.raises(ValueError, match="image_contrast"):
         build_model("dit", "grays", width_mult=0.25, height=H, width=W, relative=True, image_contrast=0.0)
-
-
-def test_image_local_sigma_makes_the_prior_blind_to_brightness(tmp_path):
-    """The same scene brighter by a constant gives the same prior with the local normalisation, in torch and in
-    prior.onnx (replicated edges exported as such); without the option it does not."""
-    pytest.importorskip("onnxruntime")
-    from export.onnx import export_network
-    from runtime.network import DepthNetwork
-
-    net = _relative_net(image_local_sigma=4.0)
-    assert net.describe()["input"]["image_local_sigma_px"] == 4.0
-    rng = np.random.default_rng(2)
-    grey = (0.4 + 0.08 * rng.standard_normal((H, W))).clip(0, 0.7).astype(np.float32)
-    brighter = grey + np.float32(0.25)
-    sparse = _sparse(b=1)[0, 0].numpy()
-    code = rng.normal(size=8).astype(np.float32)
-    export_network(net, tmp_path, modality="grays", height=H, width=W)
-    dn = DepthNetwork(tmp_path)
-    np.testing.assert_allclose(dn.prior(brighter, sparse).depth(code), dn.prior(grey, sparse).depth(code), rtol=1e-4)
-    x = torch.from_numpy(np.stack([grey, sparse])[None])
-    with torch.no_grad():
-        d_t = net.decoder(torch.from_numpy(code[None]), *net.prior(x)[1])[0, 0].numpy()
-    np.testing.assert_allclose(dn.prior(grey, sparse).depth(code), d_t, rtol=1e-4, atol=1e-5)
-    plain = _relative_net()
-    x2 = torch.from_numpy(np.stack([brighter, sparse])[None])
-    c = torch.from_numpy(code[None])
-    with torch.no_grad():
-        d1, d2 = plain.decoder(c, *plain.prior(x)[1]), plain.decoder(c, *plain.prior(x2)[1])
-    assert not torch.allclose(d1, d2, rtol=1e-3)
-    with pytest.raises(ValueError, match="exclude each other"):
-        _relative_net(image_contrast=0.2, image_local_sigma=4.0)
-    with pytest.raises(ValueError, match="image_local_sigma"):
-        build_model("fastdepth", "grays", width_mult=0.25, height=H, width=W, image_local_sigma=4.0)

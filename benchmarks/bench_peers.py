@@ -41,6 +41,7 @@ import math
 import os
 import re
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -148,6 +149,25 @@ def run_ours(system: str, seq: Path, out: Path, timeout: float) -> dict:
     return res
 
 
+def failure_note(r: subprocess.CompletedProcess) -> str:
+    """Why a peer's run gave no result, for the table: the signal that killed it, whether ORB-SLAM3's map was empty
+    when it saved it (it then crashes in SaveTrajectoryEuRoC), else the last line it printed.
+    """
+    why = []
+    if r.returncode < 0:
+        try:
+            why.append(f"killed by {signal.Signals(-r.returncode).name}")
+        except ValueError:
+            why.append(f"killed by signal {-r.returncode}")
+    kfs = [int(k) for k in re.findall(r"Map \d+ has (\d+) KFs", r.stdout or "")]
+    if kfs and max(kfs) == 0:
+        why.append("its map had no keyframe left when saved")
+    if not why:
+        tail = (r.stderr.strip().splitlines() or r.stdout.strip().splitlines() or ["no output"])[-1]
+        why.append(tail[:200])
+    return "failed: " + "; ".join(why)
+
+
 def run_peer(system: str, seq: Path, out: Path, vocab: Path | None, args) -> dict:
     cmd = [args.peers_python, "-m", "benchmarks.peers.run_peer", "--system", system, "--sequence", str(seq)]
     cmd += ["--out", str(out), "--imu-noise-scale", f"{args.imu_noise_scale:g}"]
@@ -157,12 +177,11 @@ def run_peer(system: str, seq: Path, out: Path, vocab: Path | None, args) -> dic
     (out / "log.txt").write_text(f"{r.stdout}\n--- stderr ---\n{r.stderr}")  # the peer's own messages (resets, ...)
     f = out / "result.json"
     if r.returncode != 0 or not f.is_file():
-        tail = (r.stderr.strip().splitlines() or r.stdout.strip().splitlines() or ["no output"])[-1]
         return {
             "rc": r.returncode,
             "frames": 0,
             "frames_with_pose": 0,
-            "note": f"failed: {tail[:200]}",
+            "note": failure_note(r),
             "child_wall_s": wall,
             "child_cpu_s": cpu,
         }

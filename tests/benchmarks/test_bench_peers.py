@@ -4,12 +4,13 @@ EuRoC-layout sensor.yaml files, the scoring and its alignment choice, the home-t
 from __future__ import annotations
 
 import math
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from benchmarks.bench_peers import aggregate, merge_results, ours_command, ratios
+from benchmarks.bench_peers import aggregate, failure_note, merge_results, ours_command, ratios
 from benchmarks.peers import scoring, settings, vocab
 from benchmarks.sequences import parse_sequence
 from runtime.io.sensor_yaml import load_sensor_yaml
@@ -301,3 +302,14 @@ def test_ours_command_names_the_mode():
     assert sparse[1:3] == ["sequence=seq", "out=out"]
     with pytest.raises(ValueError):
         ours_command("orbslam3-mono", Path("seq"), Path("out"))
+
+
+def test_a_failed_peer_run_is_noted_by_its_cause_not_by_a_warning():
+    """ORB-SLAM3 prints its settings warnings last; a crash on an empty map must say so, not quote a warning."""
+    out = "There are 1 maps in the atlas\n  Map 0 has 0 KFs\n"
+    crashed = subprocess.CompletedProcess([], -11, out, "System.thFarPoints optional parameter does not exist...")
+    assert failure_note(crashed) == "failed: killed by SIGSEGV; its map had no keyframe left when saved"
+    kept = subprocess.CompletedProcess([], -9, "Map 0 has 0 KFs\nMap 1 has 12 KFs\n", "timed out after 1800 s")
+    assert failure_note(kept) == "failed: killed by SIGKILL"
+    error = subprocess.CompletedProcess([], 1, "", "Traceback (most recent call last):\nValueError: bad image")
+    assert failure_note(error) == "failed: ValueError: bad image"

@@ -16,7 +16,7 @@ import numpy as np
 
 from runtime.backend.imu import integrate, preintegration_params
 from runtime.backend.state import Keyframe
-from runtime.geometry import inv_T, ns_to_s
+from runtime.geometry import inv_T, ns_to_s, s_to_ns
 from runtime.init import imu_rest_stats
 from runtime.init.runner import Snapshot, StartState, propagate_back
 from runtime.trajectory import FrameRecord
@@ -139,7 +139,11 @@ def adapt_imu_noise(system, t0: int, t1: int) -> tuple[float, float] | None:
 def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     """After a start while turning in place (velocity taken as 0): re-initialise from structure from motion as
     soon as the motion allows it, within ``refine_within_s``, over all frames since the first, which then take
-    the new poses (in the current map frame). Returns True when it did.
+    the new poses (in the current map frame). From ``restart_recent_after_s`` after the start on, when those frames
+    fail (too few tracks common to the first and the newest on a bare wall), a recent window as a first in-motion
+    start takes it, the older frames integrated back from it: on the realistic ``handheld`` seed 102 a start turning
+    in place had read 0.38 m/s of translation as a 0.05 rad/s gyroscope bias, and no restart over every frame came
+    (12.3 m; 48.1 mm with the fallback). Returns True when it did.
 
     (Restarting this way after a long loss of visual tracking was tried and removed: on the synthetic test with
     tracking forced lost, restarts every second gave ATE 0.46 m; bridging on the IMU and triangulating from the
@@ -154,7 +158,11 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
         return False
     since = system.t_first
     run.add(Snapshot(frame_idx, ts, feats, image if system.dense is not None else None), keep_since=since)
-    st = run.try_motion(ts, allow_hover=False, since=since)
+    d = system.cfg.dynamic_init
+    started = system.restart_until - s_to_ns(d.refine_within_s)  # the start turning in place
+    after = d.restart_recent_after_s
+    recent_from = started + s_to_ns(after) if np.isfinite(after) else None
+    st = run.try_motion(ts, allow_hover=False, since=since, recent_from=recent_from)
     if st is None:
         return False
     A = frame_alignment(system.T_cur, st.keyframes[-1][1])

@@ -77,6 +77,7 @@ class DynamicInitConfig:
     try_every_s: float = 0.1  # s between attempts
     backfill_s: float = 10.0  # frames before the start window get IMU poses this far back (every kept frame)
     refine_within_s: float = 10.0  # after a start turning in place, re-initialise in motion within this time
+    restart_recent_after_s: float = 3.0  # s after that start: the restart may also take a recent window (1e9: never)
     # priors on the first state (looser than at rest: estimated in motion)
     prior_vel_sigma: float = 0.1  # m/s
     prior_hover_vel_sigma: float = 0.2  # m/s, velocity taken as 0 while hovering

@@ -136,9 +136,12 @@ class InitRunner:
             return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest + before, {}, info, res.noise)
         return self.try_motion(ts, allow_hover=True)
 
-    def try_motion(self, ts: int, allow_hover: bool, since: int | None = None) -> StartState | None:
+    def try_motion(
+        self, ts: int, allow_hover: bool, since: int | None = None, recent_from: int | None = None
+    ) -> StartState | None:
         """In motion (or, with ``allow_hover``, turning in place) over the frames of the last ``window_s`` (or
-        all kept frames from ``since``, ns); None when not (yet)."""
+        all kept frames from ``since``, ns, and, when those fail at or after ``recent_from``, ns, over the last
+        ``window_s`` as well); None when not (yet)."""
         d = self.dyn
         span = ns_to_s(ts - self.frames[0].ts)
         if not d.enabled or span < d.min_window_s:
@@ -147,25 +150,16 @@ class InitRunner:
             return None
         self.last_try = ts
         base = self._window(ts - s_to_ns(d.window_s) if since is None else since)
-        win, sel, par_px, n = base
-        if since is None and n >= d.min_tracks and par_px < d.min_parallax_px:
-            longer = self._longer_window(ts, win[0].ts)
-            if longer is not None:
-                win, sel, par_px, n = longer
-        feats = [s.feats for s in sel]
         try:
-            if n >= d.min_tracks and par_px < d.min_parallax_px:
-                raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
-            self.tries += 1
             try:
-                r = self._in_motion(feats, ts)
+                r, win, sel = self._motion(ts, base, since)
             except InitFailed:
-                longest = self._window(ts - s_to_ns(d.max_window_s)) if since is None else None
-                if longest is None or longest[0][0].ts >= win[0].ts:
+                if since is None or recent_from is None or ts < recent_from:
                     raise
-                win, sel = longest[:2]
-                feats = [s.feats for s in sel]
-                r = self._in_motion(feats, ts)
+                # the frames since the start share too few tracks or too little parallax (a bare wall on
+                # ``handheld`` seed 102): a recent window, as a first start takes, the older frames integrated back
+                base = self._window(ts - s_to_ns(d.window_s))
+                r, win, sel = self._motion(ts, base, None)
             method = "dynamic"
         except InitFailed as e:
             self.last_reason = str(e)
@@ -195,6 +189,28 @@ class InitRunner:
         frames += before
         info = dict(r.info, attempts=self.tries, bias_refused=self.bias_refused, **backfill_info(before, sel[0].ts))
         return StartState(method, kfs, bias, frames, sigmas, info)
+
+    def _motion(self, ts: int, base: tuple, since: int | None) -> tuple:
+        """Structure from motion and alignment over the window ``base`` (:meth:`_window`), or, without ``since``, a
+        longer one where it shows too little parallax or fails; returns ``(result, window, frames used)``. Raises
+        :class:`InitFailed`."""
+        d = self.dyn
+        win, sel, par_px, n = base
+        if since is None and n >= d.min_tracks and par_px < d.min_parallax_px:
+            longer = self._longer_window(ts, win[0].ts)
+            if longer is not None:
+                win, sel, par_px, n = longer
+        if n >= d.min_tracks and par_px < d.min_parallax_px:
+            raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
+        self.tries += 1
+        try:
+            return self._in_motion([s.feats for s in sel], ts), win, sel
+        except InitFailed:
+            longest = self._window(ts - s_to_ns(d.max_window_s)) if since is None else None
+            if longest is None or longest[0][0].ts >= win[0].ts:
+                raise
+            win, sel = longest[:2]
+            return self._in_motion([s.feats for s in sel], ts), win, sel
 
     def _in_motion(self, feats: list, ts: int):
         """:func:`initialize_in_motion` on ``feats``, refused when its gyroscope bias disagrees with the one the

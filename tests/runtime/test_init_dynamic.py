@@ -240,6 +240,76 @@ def test_a_failed_alignment_is_tried_again_on_the_longest_window(monkeypatch):
     assert _steps(old, frames, 3.0) is None  # without a longer window there is no start
 
 
+def test_a_restart_whose_frames_since_the_start_fail_takes_a_recent_window(monkeypatch):
+    """After a start turning in place, the restart tries every frame since the first (``since``). When that fails
+    (here: any window over 2 s, as the few common tracks of a bare wall make it) at or after ``recent_from``, it
+    also tries the recent window a first start would take, the frames before it integrated back; before
+    ``recent_from``, or without it, it does not."""
+    import runtime.init.runner as runner_mod
+    from runtime.init.runner import InitRunner, Snapshot
+    from runtime.init.static import InitConfig
+
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0, rate=0.4)
+    frames, imu = _frames(m, 4.0)
+    real, spans = runner_mod.initialize_in_motion, []
+
+    def short_only(feats, *a, **k):
+        span = (feats[-1].ts - feats[0].ts) * 1e-9
+        spans.append(round(span, 2))
+        if span > 2.0:
+            raise InitFailed("at most 12 tracks common with the newest frame (< 30)")
+        return real(feats, *a, **k)
+
+    monkeypatch.setattr(runner_mod, "initialize_in_motion", short_only)
+    ts = frames[-1].ts
+    for recent_from in (None, ts + 1, ts):
+        spans.clear()
+        run = InitRunner(InitConfig(), DynamicInitConfig(), imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
+        for k, f in enumerate(frames):
+            run.add(Snapshot(k, f.ts, f), keep_since=T0)
+        st = run.try_motion(ts, allow_hover=False, since=T0, recent_from=recent_from)
+        assert spans[0] == 4.0  # the frames since the start were tried first
+        if recent_from is None or recent_from > ts:
+            assert st is None and spans == [4.0] and "tracks common" in run.last_reason
+            continue
+        assert st is not None and st.method == "dynamic" and spans[-1] <= 1.0 + 1e-6
+        assert st.keyframes[0][0].ts >= ts - 1_000_000_000  # the recent window
+        assert st.info["backfilled_frames"] >= 59  # every frame since the start before that window
+        snap0, T_kf0, _ = st.keyframes[0]
+        assert _tilt_deg(T_kf0[:3, :3], m.body((snap0.ts - T0) * 1e-9)[0][:3, :3]) < 0.5
+        p_kf0 = m.body((snap0.ts - T0) * 1e-9)[0][:3, 3]
+        for snap, T in st.frames:  # the frames since the start: distances to the window's first keyframe (yaw-free)
+            true = np.linalg.norm(m.body((snap.ts - T0) * 1e-9)[0][:3, 3] - p_kf0)
+            assert abs(np.linalg.norm(T[:3, 3] - T_kf0[:3, 3]) - true) < 0.05 + 0.02 * true
+
+
+@pytest.mark.parametrize("after_s", [3.0, 0.5, float("inf")])
+def test_a_restart_may_take_a_recent_window_from_restart_recent_after_s_on(after_s):
+    """``try_restart`` hands the runner the time from which a recent window may replace every frame since the first:
+    ``restart_recent_after_s`` after the start turning in place (never when infinite)."""
+    from types import SimpleNamespace
+
+    from runtime.slam import SlamConfig
+    from runtime.start import try_restart
+
+    calls = []
+    run = SimpleNamespace(add=lambda *a, **k: None, try_motion=lambda ts, **k: calls.append(k))
+    cfg = SlamConfig()
+    cfg.dynamic_init.restart_recent_after_s = after_s
+    t_hover = 5 * 10**9
+    system = SimpleNamespace(
+        cfg=cfg,
+        restart_until=t_hover + int(cfg.dynamic_init.refine_within_s * 1e9),
+        initializer=run,
+        t_first=10**9,
+        dense=None,
+    )
+    assert try_restart(system, 7, t_hover + 10**9, None, None) is False  # the runner found no start
+    (k,) = calls
+    assert k["since"] == 10**9 and k["allow_hover"] is False
+    assert k["recent_from"] == (None if after_s == float("inf") else t_hover + int(after_s * 1e9))
+
+
 def test_backfill_reaches_every_kept_frame_and_is_reported():
     """The frames before a start are integrated back from it as far as ``backfill_s`` reaches (the default: every
     kept frame); metrics.json's ``initialisation`` says how many and how far back (known answers)."""

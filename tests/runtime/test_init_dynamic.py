@@ -202,6 +202,21 @@ def test_frames_before_an_in_motion_start_follow_the_first_keyframes_state():
     assert system.older_pending is None and np.array_equal(recs[20].T_rel, before)
 
 
+def _span_gated(runner_mod, ok, message: str):
+    """A stand-in for ``initialize_in_motion`` that records each window's span [s] and fails with ``message`` where
+    ``ok(span)`` is false; returns it, the list of spans and the real function."""
+    real, spans = runner_mod.initialize_in_motion, []
+
+    def gated(feats, *a, **k):
+        span = (feats[-1].ts - feats[0].ts) * 1e-9
+        spans.append(round(span, 2))
+        if not ok(span):
+            raise InitFailed(message)
+        return real(feats, *a, **k)
+
+    return gated, spans, real
+
+
 def test_a_failed_alignment_is_tried_again_on_the_longest_window(monkeypatch):
     """When the alignment fails on the 1 s window (slow motion: the accelerometer bias outweighs the acceleration),
     the start is tried once more over the longest window of kept frames up to ``max_window_s``, and takes it; a
@@ -212,14 +227,9 @@ def test_a_failed_alignment_is_tried_again_on_the_longest_window(monkeypatch):
 
     m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0, rate=0.4)
     frames, imu = _frames(m, 3.0)
-    real, spans = runner_mod.initialize_in_motion, []
-
-    def needs_two_seconds(feats, *a, **k):
-        span = (feats[-1].ts - feats[0].ts) * 1e-9
-        spans.append(round(span, 2))
-        if span < 2.0 - 1e-6:
-            raise InitFailed("alignment scale -0.2 is not positive")
-        return real(feats, *a, **k)
+    needs_two_seconds, spans, real = _span_gated(
+        runner_mod, lambda span: span >= 2.0 - 1e-6, "alignment scale -0.2 is not positive"
+    )
 
     monkeypatch.setattr(runner_mod, "initialize_in_motion", needs_two_seconds)
     run = InitRunner(InitConfig(), DynamicInitConfig(max_window_s=3.0), imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
@@ -251,14 +261,9 @@ def test_a_restart_whose_frames_since_the_start_fail_takes_a_recent_window(monke
 
     m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0, rate=0.4)
     frames, imu = _frames(m, 4.0)
-    real, spans = runner_mod.initialize_in_motion, []
-
-    def short_only(feats, *a, **k):
-        span = (feats[-1].ts - feats[0].ts) * 1e-9
-        spans.append(round(span, 2))
-        if span > 2.0:
-            raise InitFailed("at most 12 tracks common with the newest frame (< 30)")
-        return real(feats, *a, **k)
+    short_only, spans, _ = _span_gated(
+        runner_mod, lambda span: span <= 2.0, "at most 12 tracks common with the newest frame (< 30)"
+    )
 
     monkeypatch.setattr(runner_mod, "initialize_in_motion", short_only)
     ts = frames[-1].ts

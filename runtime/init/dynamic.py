@@ -11,7 +11,10 @@ For a sequence with no period at rest (a MAV already flying, a hand-held camera 
 2. **Gyroscope bias**: the visual relative rotations against the gyro's (Gauss-Newton on ``b_g``). The bias is
    constant over seconds: when earlier attempts agreed on one (``earlier_bias``, kept by the runner), an attempt
    whose bias lies more than ``bias_agree`` from it has a wrong structure from motion and is refused
-   (:class:`BiasDisagrees`; on ``handheld`` seed 42 a two-view solution 11.7 deg off in rotation, reports/).
+   (:class:`BiasDisagrees`; on ``handheld`` seed 42 a two-view solution 11.7 deg off in rotation, reports/). Wrong
+   structures from motion of one scene can agree with each other, though: a bias larger than ``max_gyro_bias``,
+   which no MEMS gyroscope has, is refused and not remembered (on ``handheld`` seed 108 four of them, at 0.31-0.34
+   rad/s against the true 0.09, had refused the right attempt).
 3. **Linear alignment** (Qin et al., VINS-Mono, IEEE T-RO 2018, Sec. V-B): with the IMU preintegrated between
    the frames (``alpha``, ``beta`` in the earlier body frame), the body positions ``P_k = s pc_k - R_c0_bk t_bc``
    and velocities ``V_k`` in the frame ``c0`` obey
@@ -86,6 +89,10 @@ class DynamicInitConfig:
     # a start whose gyroscope bias is farther than this from the earlier attempts' (when at least two of them agree
     # to within it) is refused: its structure from motion is wrong (reports/ablations.md, handheld seed 42)
     bias_agree: float = 0.03  # rad/s; 0: off
+    # a start whose gyroscope bias is larger than this is refused and not remembered: no MEMS gyroscope's bias is
+    # that large, its structure from motion is wrong (reports/ablations.md, handheld seed 108); raise it for an
+    # uncalibrated gyroscope with a larger zero-rate offset
+    max_gyro_bias: float = 0.25  # rad/s (14 deg/s)
 
 
 @dataclass
@@ -110,7 +117,8 @@ class InitFailed(Exception):
 
 
 class BiasDisagrees(InitFailed):
-    """The window's structure from motion gives a gyroscope bias unlike the one earlier attempts agreed on."""
+    """The window's structure from motion gives a gyroscope bias unlike the one earlier attempts agreed on, or
+    larger than ``max_gyro_bias``: a wrong structure from motion, whose bias is not one to remember."""
 
 
 # ---------------------------------------------------------------------------------------------- SfM
@@ -402,14 +410,19 @@ def initialize_in_motion(
     """States of ``frames`` (tracked :class:`FrameFeatures`, oldest first) from SfM and the IMU stream ``imu``
     (:class:`runtime.backend.imu.ImuStream`). Raises :class:`InitFailed` with the reason (and, once structure from
     motion has given it, the gyroscope bias). ``earlier_bias``: the gyroscope bias (3,) that earlier attempts
-    agreed on; a bias farther than ``cfg.bias_agree`` from it refuses the start (the gyroscope bias is constant
-    over seconds, so a different one means a wrong structure from motion)."""
+    agreed on; a bias larger than ``cfg.max_gyro_bias``, or farther than ``cfg.bias_agree`` from it, refuses the
+    start (the gyroscope bias is constant over seconds, so a different one means a wrong structure from motion)."""
     T_c0_c, depth, info = structure_from_motion(frames, focal, cfg)
     R_c_b = T_b_c[:3, :3].T
     R_c0_b = T_c0_c[:, :3, :3] @ R_c_b
     ts = np.array([f.ts for f in frames], np.int64)
     segs = [imu.segment(int(a), int(b)) for a, b in zip(ts[:-1], ts[1:], strict=True)]
     bg = estimate_gyro_bias(R_c0_b, segs)
+    if float(np.linalg.norm(bg)) > cfg.max_gyro_bias:
+        raise BiasDisagrees(
+            f"structure from motion implausible: gyroscope bias {np.round(bg, 3).tolist()} rad/s, larger than "
+            f"max_gyro_bias {cfg.max_gyro_bias}"
+        )
     if earlier_bias is not None and cfg.bias_agree > 0:
         off = float(np.linalg.norm(bg - earlier_bias))
         if off > cfg.bias_agree:

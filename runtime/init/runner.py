@@ -164,6 +164,7 @@ class InitRunner:
         except InitFailed as e:
             self.last_reason = str(e)
             if not allow_hover or span < d.window_s:
+                log.debug("t=%.3f s: no initialisation yet (%s)", ns_to_s(ts), self.last_reason)
                 return None
             win, sel = base[:2]  # turning in place is judged over window_s, not over a longer window
             feats = [s.feats for s in sel]

@@ -363,6 +363,21 @@ def test_a_start_whose_gyro_bias_disagrees_with_the_earlier_attempts_is_refused_
     assert e.value.gyro_bias is None
 
 
+def test_a_start_whose_gyro_bias_exceeds_max_gyro_bias_is_refused_and_not_remembered():
+    """No gyroscope has a bias beyond ``max_gyro_bias``: a structure from motion that gives one is refused as a
+    :class:`BiasDisagrees` (so the runner does not remember its bias), whatever the earlier attempts agree on."""
+    bias = np.array([0.01, -0.02, 0.015])  # |b| = 0.027 rad/s
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0)
+    frames, imu = _frames(m, 1.6, bias=bias)
+    sel = frames[4::3][:10]
+    assert DynamicInitConfig().max_gyro_bias >= 0.25  # the default takes any MEMS gyroscope's bias
+    r = initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig(max_gyro_bias=0.03))
+    assert np.allclose(r.bg, bias, atol=1e-3)
+    with pytest.raises(BiasDisagrees, match="larger than max_gyro_bias 0.02") as e:
+        initialize_in_motion(sel, imu, EUROC_T_BS, EUROC_CAM.fx, DynamicInitConfig(max_gyro_bias=0.02), bias)
+    assert e.value.gyro_bias is None
+
+
 def test_the_earlier_attempts_bias_needs_two_that_agree_within_the_window():
     from runtime.init import InitConfig
     from runtime.init.runner import InitRunner

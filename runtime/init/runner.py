@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
+import re
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,6 +86,12 @@ class InitRunner:
         self.bias_refused = 0  # attempts refused for a gyroscope bias unlike the earlier attempts'
         self.biases: deque[tuple[int, np.ndarray]] = deque()  # (ns, gyro bias) of attempts that failed after SfM
         self.last_reason = ""
+        self.failures: Counter = Counter()  # why attempts failed, by kind (:func:`reason_kind`), over the whole run
+
+    def _failed(self, ts: int, reason: str) -> None:
+        self.last_reason = reason
+        self.failures.update(reason_kind(part) for part in reason.split("; "))
+        log.debug("t=%.3f s: no initialisation yet (%s)", ns_to_s(ts), reason)
 
     def reset(self) -> None:
         self.frames.clear()
@@ -162,9 +169,8 @@ class InitRunner:
                 r, win, sel = self._motion(ts, base, None)
             method = "dynamic"
         except InitFailed as e:
-            self.last_reason = str(e)
             if not allow_hover or span < d.window_s:
-                log.debug("t=%.3f s: no initialisation yet (%s)", ns_to_s(ts), self.last_reason)
+                self._failed(ts, str(e))
                 return None
             win, sel = base[:2]  # turning in place is judged over window_s, not over a longer window
             feats = [s.feats for s in sel]
@@ -172,8 +178,7 @@ class InitRunner:
                 r = initialize_hovering(feats, self.imu, self.T_b_c, self.focal, d)
                 method = "hover"
             except InitFailed as e2:
-                self.last_reason = f"{e}; {e2}"
-                log.debug("t=%.3f s: no initialisation yet (%s)", ns_to_s(ts), self.last_reason)
+                self._failed(ts, f"{e}; {e2}")
                 return None
         bias = np.concatenate([r.ba, r.bg])
         if method == "hover":  # one start state, the window's other frames at their rotations
@@ -188,7 +193,13 @@ class InitRunner:
         frames = [(s, T) for s, T, ok in zip(others, T_o, inside, strict=True) if ok]
         before = self._before(sel[0], r.T_w_b[0], r.v_w[0], bias)
         frames += before
-        info = dict(r.info, attempts=self.tries, bias_refused=self.bias_refused, **backfill_info(before, sel[0].ts))
+        info = dict(
+            r.info,
+            attempts=self.tries,
+            bias_refused=self.bias_refused,
+            failures=dict(self.failures.most_common(6)),
+            **backfill_info(before, sel[0].ts),
+        )
         return StartState(method, kfs, bias, frames, sigmas, info)
 
     def _motion(self, ts: int, base: tuple, since: int | None) -> tuple:
@@ -278,6 +289,19 @@ class InitRunner:
         at most ``backfill_s`` back (the unknown accelerometer bias grows the error with the square of time)."""
         older = [s for s in self.frames if first.ts - s_to_ns(self.dyn.backfill_s) <= s.ts < first.ts]
         return propagate_back(self.imu, older, first.ts, T, v, bias)
+
+
+def reason_kind(reason: str) -> str:
+    """The kind of an attempt's failure, for counting: its text before any colon, without the parenthesised bounds,
+    numbers and vectors written as N.
+
+    >>> reason_kind("rotation-compensated parallax 8.4 px (< 12.0): too little translation")
+    'rotation-compensated parallax N px'
+    >>> reason_kind("27 tracks common with the oldest frame (< 30)")
+    'N tracks common with the oldest frame'
+    """
+    text = re.sub(r"\s*\([^)]*\)", "", reason.split(":")[0])
+    return re.sub(r"\[[^\]]*\]|-?\d+(\.\d+)?(e-?\d+)?", "N", text).strip()
 
 
 def backfill_info(before: list, t_first: int) -> dict:

@@ -288,6 +288,38 @@ def test_a_restart_whose_frames_since_the_start_fail_takes_a_recent_window(monke
             assert abs(np.linalg.norm(T[:3, 3] - T_kf0[:3, 3]) - true) < 0.05 + 0.02 * true
 
 
+def test_the_runner_counts_why_attempts_failed_by_kind(monkeypatch):
+    """Every failed attempt is counted by kind (its text before a colon, numbers as N); the start's info in
+    metrics.json carries the counts."""
+    import runtime.init.runner as runner_mod
+    from runtime.init.runner import InitRunner, Snapshot, reason_kind
+    from runtime.init.static import InitConfig
+
+    assert reason_kind("median scene depth 0.050 m (< 0.2): tracks or scale implausible") == "median scene depth N m"
+    assert reason_kind("structure from motion implausible: gyroscope bias [-0.3, 0.05, 0.0] rad/s") == (
+        "structure from motion implausible"
+    )
+    assert reason_kind("PnP failed") == "PnP failed"
+    m = Motion(seed=3, t_rest=0.0, t_ramp=0.2, amp=2.0, rate=0.4)
+    frames, imu = _frames(m, 2.0)
+    after_1s, spans, _ = _span_gated(
+        runner_mod, lambda span: span > 1.05, "median scene depth 0.1 m (< 0.2): implausible"
+    )
+    monkeypatch.setattr(runner_mod, "initialize_in_motion", after_1s)
+    dyn = DynamicInitConfig(window_s=1.0, max_window_s=1.0, try_every_s=0.0)
+    run = InitRunner(InitConfig(), dyn, imu, EUROC_T_BS, EUROC_CAM.fx, GRAVITY)
+    st = None
+    for k, f in enumerate(frames):
+        run.add(Snapshot(k, f.ts, f))
+        if k >= 10 and st is None:
+            st = run.try_motion(f.ts, allow_hover=False, since=T0)
+    assert st is not None and st.method == "dynamic"
+    refused = sum(span <= 1.05 for span in spans)  # the stand-in's failures; the others failed before it
+    assert refused >= 1 and run.failures["median scene depth N m"] == refused
+    assert set(run.failures) == {"median scene depth N m", "rotation-compensated parallax N px"}
+    assert st.info["failures"] == dict(run.failures) and st.info["attempts"] >= refused
+
+
 @pytest.mark.parametrize("after_s", [3.0, 0.5, float("inf")])
 def test_a_restart_may_take_a_recent_window_from_restart_recent_after_s_on(after_s):
     """``try_restart`` hands the runner the time from which a recent window may replace every frame since the first:

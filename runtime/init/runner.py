@@ -83,7 +83,7 @@ class InitRunner:
         self.frames: deque[Snapshot] = deque()
         self.last_try: int | None = None
         self.tries = 0
-        self.bias_refused = 0  # attempts refused for a gyroscope bias unlike the earlier attempts'
+        self.bias_refused = 0  # attempts refused for their gyroscope bias (unlike the earlier ones', or too large)
         self.biases: deque[tuple[int, np.ndarray]] = deque()  # (ns, gyro bias) of attempts that failed after SfM
         self.last_reason = ""
         self.failures: Counter = Counter()  # why attempts failed, by kind (:func:`reason_kind`), over the whole run

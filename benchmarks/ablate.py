@@ -17,8 +17,10 @@ The arms of one sequence and system run at the same time (``--jobs``, default 2)
 machine's load. SLAM runs are deterministic on one machine and chaotic across CPUs: compare only runs of one
 machine, and take speed from the CPU seconds (``cpu_s``, each process's own), not from frames/s under load.
 
-Every run's outputs stay in ``--work``/SEQUENCE/SYSTEM/ARM; a run whose ``metrics.json`` is complete and whose
-command is the same is not run again, so an interrupted ablation resumes where it stopped. The result file is
+Every run's outputs stay in ``--work``/SEQUENCE/SYSTEM/ARM, with its log (``run.log``: the events of the
+intrinsics' first pass too, which ``metrics.json`` leaves out, so that one can see where a candidate acted); a run
+whose ``metrics.json`` is complete and whose command is the same is not run again, so an interrupted ablation
+resumes where it stopped. The result file is
 written after every run (atomically) and holds the rule, the arms, the machine, every run and the summary:
 per system and arm, the paired SE(3) and Sim(3) differences to the baseline [mm] (mean, standard error, runs
 lower), the same per family (the preset, or ``mh05``), the MH_05 runs at or under ``--mh05-bar``, runs with fewer
@@ -97,8 +99,10 @@ def _run(cmd: list[str], out: Path, timeout: float) -> tuple[dict, bool]:
     (out / "metrics.json").unlink(missing_ok=True)  # a run that fails before writing its own must not show the last
     try:
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        (out / "run.log").write_text(r.stdout + r.stderr)  # both passes' events: where a candidate acted
         failure = None if r.returncode == 0 else (r.stderr.strip().splitlines() or [f"exit status {r.returncode}"])[-1]
-    except subprocess.TimeoutExpired:
+    except subprocess.TimeoutExpired as e:
+        (out / "run.log").write_text(_text(e.stdout) + _text(e.stderr))
         failure = f"timed out after {timeout:.0f} s"
     m = _metrics(out)
     row = run_row(m)
@@ -107,6 +111,10 @@ def _run(cmd: list[str], out: Path, timeout: float) -> tuple[dict, bool]:
     elif m.get("complete"):
         stamp.write_text(json.dumps(cmd))
     return row, True
+
+
+def _text(b) -> str:
+    return b.decode(errors="replace") if isinstance(b, bytes) else (b or "")
 
 
 def _mean_se(x: list[float]) -> list[float | None]:

@@ -77,6 +77,7 @@ out = Path(kv["out"])
 out.mkdir(parents=True, exist_ok=True)
 with open(Path(kv["sequence"]).parent / "calls.txt", "a") as f:
     f.write(" ".join(sys.argv[1:]) + "\\n")
+print(f"first pass of {kv['sequence']}", file=sys.stderr)
 if kv.get("fake.fail") == "true":
     print("dit-slam: a bad setting", file=sys.stderr)
     sys.exit(2)
@@ -120,6 +121,8 @@ def test_ablation_runs_every_arm_writes_the_rule_and_summary_and_resumes(fake, c
         assert s["pairs"] == 2 and s["se3_mm"][0] == pytest.approx(2.0) and s["sim3_mm"][0] == pytest.approx(1.0)
         assert s["cpu_ratio_median"] == pytest.approx(5.2 / 5.0, abs=1e-3) and s["first_pass_ratio_median"] == 1.0
     assert "sparse/F - B: 2 pairs, SE(3) 2.0" in capsys.readouterr().out
+    log = tmp / "runs" / "flight_s2" / "dense" / "F" / "run.log"  # each run keeps its log
+    assert log.read_text().startswith("first pass of ") and "flight_s2" in log.read_text()
     # the outcome written by hand is kept, and complete runs of the same command are not made again
     saved["outcome"] = "lost"
     out.write_text(json.dumps(saved))
@@ -146,6 +149,7 @@ def test_ablation_reports_a_failed_run_and_leaves_it_out_of_the_pairs(fake, caps
     res = main([*base, "--arm", "B", "", "--arm", "X", "fake.fail=true", "--out", str(tmp / "r.json")])
     failed = [r for r in res["runs"] if r["arm"] == "X"]
     assert len(failed) == 4 and all(r["error"] == "dit-slam: a bad setting" for r in failed)
+    assert "dit-slam: a bad setting" in (tmp / "runs" / "flight_s1" / "sparse" / "X" / "run.log").read_text()
     assert res["summary"]["sparse/X"]["pairs"] == 0 and res["summary"]["sparse/X"]["se3_mm"] == [None, None]
 
 

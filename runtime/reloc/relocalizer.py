@@ -44,6 +44,12 @@ class RelocConfig:
     guided: bool = True  # at every keyframe, re-find map points near their predicted projection
     guided_radius_px: float = 12.0
     guided_max_hamming: int = 50
+    # the guided search also looks for the window's own landmarks that no track follows now (lost by the KLT, back
+    # in view), within this radius of their projections, as ORB-SLAM3 matches its local map; 0: off. Their
+    # positions share the window with the keyframe's pose, so their projections are good to a few pixels: a tight
+    # radius keeps out wrong matches (at 12 px it lost on MH_05). Adopted at 4 px over 29 fresh pairs:
+    # SE(3) -6.3 +- 3.8 mm sparse, -4.0 +- 2.7 dense (reports/ablations.md, slam_ablations/guided_window_4px.json)
+    guided_window_radius_px: float = 4.0
 
 
 @dataclass
@@ -146,30 +152,46 @@ class Relocalizer:
 
     def guided_match(self, kf, image: np.ndarray) -> np.ndarray:
         """Re-find old map points among the keyframe's tracks that are not landmarks yet (small search radius
-        around the predicted projections, descriptor check); matched tracks take the map point's id. Returns
-        the renamed track ids."""
+        around the predicted projections, descriptor check); matched tracks take the map point's id. With
+        ``guided_window_radius_px``, then the window's landmarks that no track follows now, within that radius: a
+        matched track takes the landmark's id and the keyframe observes it. Returns the renamed track ids."""
         c = self.cfg
-        none = np.zeros(0, np.int64)
-        ids, Xm = self.backend.map.map_point_arrays()
+        m = self.backend.map
+        ids, Xm = m.map_point_arrays()
+        t_ids, m_ids, X_m, uv = self._guided(kf, image, ids, Xm, c.guided_radius_px)
+        renamed = self._adopt(kf.kf_id, t_ids, m_ids, X_m, uv) if t_ids.size else t_ids
+        if c.guided_window_radius_px > 0:
+            ids, Xw = m.landmark_arrays()
+            lost = np.array([m.landmarks[int(j)].map_prior is None for j in ids], dtype=bool)
+            t_ids, w_ids, _, uv = self._guided(kf, image, ids[lost], Xw[lost], c.guided_window_radius_px)
+            ok = self.tracker.rename(t_ids, w_ids)
+            self.backend.add_observations(kf.kf_id, w_ids[ok], uv[ok])
+            renamed = np.concatenate([renamed, t_ids[ok]])
+        return renamed
+
+    def _guided(self, kf, image: np.ndarray, ids: np.ndarray, X: np.ndarray, radius: float) -> tuple:
+        """Matches of points ``ids`` (positions ``X``) that no track follows, projected into keyframe ``kf``, with
+        its tracks that are not landmarks, within ``radius`` px and by descriptor: ``(track ids, point ids, point
+        positions, the tracks' undistorted pixels)``."""
+        c = self.cfg
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 2)))
         if ids.size == 0:
             return none
-        uv, view = in_view(inv_T(kf.T_w_b @ self.T_b_c), Xm, self.K, self.camera.width, self.camera.height, c.max_depth)
+        uv, view = in_view(inv_T(kf.T_w_b @ self.T_b_c), X, self.K, self.camera.width, self.camera.height, c.max_depth)
         if not view.any():
             return none
         feats = self.tracker.current(kf.ts)
         dm, okm = self._untracked_descriptors(ids[view], feats)
-        ids_c, X_c, uv_c, dm = ids[view][okm], Xm[view][okm], uv[view][okm], dm[okm]
+        ids_c, X_c, uv_c, dm = ids[view][okm], X[view][okm], uv[view][okm], dm[okm]
         free = np.array([not self.backend.map.is_landmark(j) for j in feats.ids], dtype=bool)
         if not free.any() or ids_c.size == 0:
             return none
         fidx = np.nonzero(free)[0]
         df, okf = self.descriptors.describe(image, feats.uv[fidx])
         fidx = fidx[okf]
-        mi, fi = guided_match(uv_c, dm, feats.uv_u[fidx], df[okf], c.guided_radius_px, c.guided_max_hamming, c.ratio)
-        if mi.size == 0:
-            return none
+        mi, fi = guided_match(uv_c, dm, feats.uv_u[fidx], df[okf], radius, c.guided_max_hamming, c.ratio)
         fi = fidx[fi]
-        return self._adopt(kf.kf_id, feats.ids[fi], ids_c[mi], X_c[mi], feats.uv_u[fi])
+        return feats.ids[fi], ids_c[mi], X_c[mi], feats.uv_u[fi]
 
     def _untracked_descriptors(self, ids: np.ndarray, feats) -> tuple[np.ndarray, np.ndarray]:
         """Descriptors (N, 32) of map points ``ids`` and the mask of those that have one and are not tracked in

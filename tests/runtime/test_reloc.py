@@ -137,8 +137,14 @@ def test_guided_match_leaves_a_map_point_that_is_still_tracked_to_its_own_track(
     Xm = np.concatenate([xn, np.ones((2, 1))], 1) * depth  # camera frame = world frame below
     reactivated = []
     backend = SimpleNamespace(
-        map=SimpleNamespace(map_point_arrays=lambda: (np.array([7, 8]), Xm), is_landmark=lambda j: False),
+        map=SimpleNamespace(
+            map_point_arrays=lambda: (np.array([7, 8]), Xm),
+            landmark_arrays=lambda: (np.zeros(0, np.int64), np.zeros((0, 3))),  # no window landmark to re-find
+            landmarks={},
+            is_landmark=lambda j: False,
+        ),
         reactivate_landmarks=lambda ids, X, k, uv, s: reactivated.append(np.asarray(ids).tolist()),
+        add_observations=lambda k, ids, uv: None,
     )
     reloc = Relocalizer(RelocConfig(), EUROC_CAM, EUROC_T_BS, backend, tr)
     desc, ok = reloc.descriptors.describe(image, feats.uv[[0, 2]])
@@ -148,3 +154,55 @@ def test_guided_match_leaves_a_map_point_that_is_still_tracked_to_its_own_track(
     renamed = reloc.guided_match(kf, image)
     assert renamed.tolist() == [4] and reactivated == [[8]]  # map point 8 is re-found on track 4
     assert tr.ids.tolist() == [3, 7, 8]  # track 3 keeps its id: 7 stays with its own track
+
+
+def test_guided_window_re_finds_a_lost_window_landmark_within_its_radius():
+    """With ``guided_window_radius_px`` the guided search also looks for the window's own landmarks that no track
+    follows: a free track within that radius of such a landmark's projection, with its descriptor, takes its id and
+    the keyframe observes it (no map prior: it is the window's own point). A landmark that a track still follows, a
+    re-activated map point (held by its prior), and one projecting farther than the radius are not re-found; with
+    the radius 0 nothing is."""
+    from types import SimpleNamespace
+
+    from runtime.frontend.tracking import FeatureTracker
+    from runtime.reloc.relocalizer import Relocalizer, RelocConfig
+
+    rng = np.random.default_rng(1)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (EUROC_CAM.height, EUROC_CAM.width)).astype(np.uint8), (5, 5), 1.0)
+    K = EUROC_CAM.pinhole().K
+    for radius in (4.0, 0.0):
+        tr = FeatureTracker(EUROC_CAM, EUROC_T_BS)
+        tr.ids = np.array([3, 4, 5, 6, 21], np.int64)  # 3-6 free tracks; 21 follows landmark 21
+        tr.uv = np.array([[200.0, 150.0], [500.0, 300.0], [350.0, 260.0], [600.0, 120.0], [100.0, 400.0]], np.float32)
+        feats = tr.current(0)
+        xn = (feats.uv_u - K[:2, 2]) / [K[0, 0], K[1, 1]]
+        X = np.concatenate([xn, np.ones((5, 1))], 1) * np.array([[3.0], [4.0], [5.0], [6.0], [2.0]])  # camera = world
+        X[3] += [6.0 * 6.0 / K[0, 0], 0.0, 0.0]  # landmark 23 projects 6 px from track 6: outside a 4 px radius
+        # window landmarks: 20 (lost, on track 4), 21 (tracked, on its own track), 22 (re-activated, on track 5),
+        # 23 (lost, 6 px off track 6), 24 (lost, on track 3, projecting onto it)
+        lm_ids = np.array([20, 21, 22, 23, 24])
+        lm_X = X[[1, 4, 2, 3, 0]]
+        lms = {int(j): SimpleNamespace(map_prior=object() if j == 22 else None) for j in lm_ids}
+        observed = []
+        backend = SimpleNamespace(
+            map=SimpleNamespace(
+                map_point_arrays=lambda: (np.zeros(0, np.int64), np.zeros((0, 3))),
+                landmark_arrays=lambda lm_ids=lm_ids, lm_X=lm_X: (lm_ids, lm_X),
+                landmarks=lms,
+                is_landmark=lambda j: int(j) == 21,
+            ),
+            add_observations=lambda k, ids, uv, out=observed: out.append((k, np.asarray(ids).tolist(), np.asarray(uv))),
+        )
+        reloc = Relocalizer(RelocConfig(guided_window_radius_px=radius), EUROC_CAM, EUROC_T_BS, backend, tr)
+        desc, ok = reloc.descriptors.describe(image, feats.uv[[1, 4, 2, 3, 0]])
+        assert ok.all()
+        reloc.descriptors.add(lm_ids, desc, ok)
+        kf = SimpleNamespace(kf_id=5, ts=0, T_w_b=inv_T(np.asarray(EUROC_T_BS, np.float64)))
+        renamed = reloc.guided_match(kf, image)
+        if radius == 0.0:
+            assert renamed.size == 0 and observed == [] and tr.ids.tolist() == [3, 4, 5, 6, 21]
+            continue
+        assert sorted(renamed.tolist()) == [3, 4] and tr.ids.tolist() == [24, 20, 5, 6, 21]
+        ((k, ids, uv),) = observed
+        assert k == 5 and sorted(ids) == [20, 24]
+        assert np.allclose(uv[np.argsort(ids)], feats.uv_u[[1, 0]])

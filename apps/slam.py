@@ -135,6 +135,11 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"{m['sim3_scale']:.4f}); RPE/{m['rpe_delta_frames']} frames {m['rpe_trans_rmse_m']:.4f} m, "
             f"{m['rpe_rot_rmse_deg']:.3f} deg"
         )
+        if m.get("scale_by_piece"):
+            from runtime.eval import SCALE_PIECE_S
+
+            pieces = " ".join("-" if c is None else f"{c:.3f}" for c in m["scale_by_piece"])
+            lines.append(f"  Sim3 scale of each {SCALE_PIECE_S:g} s alone (scale drift): {pieces}")
     intr = m.get("intrinsics") or {}
     if intr.get("refined"):
         td = ""

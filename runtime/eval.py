@@ -20,6 +20,8 @@ log = logging.getLogger(__name__)
 
 MAX_TUM_SECONDS = 1e11  # a TUM time beyond this (year 5138) is not seconds: nanoseconds written as seconds?
 OFFSET_WARN_S = 0.02  # a best time offset at least this large (and clearly better) is reported as a warning
+SCALE_PIECE_S = 5.0  # [s] pieces of the trajectory whose Sim(3) scale is reported (scale drift)
+SCALE_MIN_SPREAD_M = 0.1  # [m] a piece whose true positions spread less than this gets no scale (ill-defined)
 
 
 def _traj(ts_ns: np.ndarray, T: np.ndarray):
@@ -99,9 +101,41 @@ def trajectory_metrics(
     else:
         out.update(rpe_trans_rmse_m=float("nan"), rpe_rot_rmse_deg=float("nan"))
     out = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in out.items()}
+    out["scale_by_piece"] = scale_by_piece(ts, np.asarray(est.positions_xyz), np.asarray(ref.positions_xyz))
     if return_aligned:
         out["aligned_se3"] = np.asarray(est_se3.positions_xyz)
         out["reference"] = np.asarray(ref.positions_xyz)
+    return out
+
+
+def scale_by_piece(
+    ts_ns: np.ndarray, est_xyz: np.ndarray, ref_xyz: np.ndarray, piece_s: float = SCALE_PIECE_S
+) -> list[float | None]:
+    """The Sim(3) scale of each ``piece_s`` piece of a trajectory, each piece aligned alone (truth = scale x
+    estimate, as ``sim3_scale``): a monocular system's scale drift, which one scale for the whole run hides.
+
+    On MH_05 the runs that end 2-3 % long are 5-8 % long over their first 5 s and near 1 after 20 s
+    (reports/ablations.md). A piece with fewer than 3 poses, or whose true positions spread less than
+    ``SCALE_MIN_SPREAD_M`` (RMS about their mean; a hover), gets None.
+
+    Args:
+        ts_ns: (N,) ns; est_xyz, ref_xyz: (N, 3) estimated and true positions at those times.
+
+    Returns:
+        One scale per piece from the first stamp on, in time order.
+    """
+    from evo.core.geometry import umeyama_alignment
+
+    t = ns_to_s(np.asarray(ts_ns, np.int64) - int(ts_ns[0])) if len(ts_ns) else np.zeros(0)
+    out: list[float | None] = []
+    for k in range(int(np.ceil((t[-1] + 1e-9) / piece_s)) if t.size else 0):
+        m = (t >= k * piece_s) & (t < (k + 1) * piece_s)
+        ref = ref_xyz[m]
+        if m.sum() < 3 or np.sqrt(np.mean(np.sum((ref - ref.mean(0)) ** 2, 1))) < SCALE_MIN_SPREAD_M:
+            out.append(None)
+            continue
+        _, _, c = umeyama_alignment(est_xyz[m].T, ref.T, with_scale=True)
+        out.append(round(float(c), 4))
     return out
 
 

@@ -63,3 +63,24 @@ def test_interpolation_and_loading(tmp_path):
         ev.trajectory_metrics(ts + 10**12, T, ts, T)
     p = ev.plot_top_view(tmp_path / "top.png", ts, T, ts, T, title="x")
     assert p.stat().st_size > 1000
+
+
+def test_scale_by_piece_finds_a_scale_drift():
+    """An estimate 10 % long over its first half and exact over the second: each 1 s piece aligned alone gives
+    1/1.1, then 1 (a known answer), while the whole run's one Sim(3) scale lies between; a piece without motion
+    gets None."""
+    ts, T = _gt(800)  # 4 s at 200 Hz
+    E = T.copy()
+    first = ns_s(ts - ts[0]) < 2.0
+    E[first, :3, 3] = 1.1 * T[first, :3, 3]
+    pieces = ev.scale_by_piece(ts, E[:, :3, 3], T[:, :3, 3], piece_s=1.0)
+    assert len(pieces) == 4
+    assert pieces[:2] == pytest.approx([1 / 1.1] * 2, abs=1e-4) and pieces[2:] == pytest.approx([1.0, 1.0], abs=1e-4)
+    m = ev.trajectory_metrics(ts, E, ts, T)
+    assert 1 / 1.1 < m["sim3_scale"] < 1.0 and len(m["scale_by_piece"]) == 1  # one 5 s piece
+    still = np.tile(T[:1, :3, 3], (400, 1))  # 2 s at rest
+    assert ev.scale_by_piece(ts[:400], still, still, piece_s=1.0) == [None, None]
+
+
+def ns_s(ns):
+    return np.asarray(ns, np.float64) * 1e-9

@@ -412,10 +412,15 @@ def render_job(job: tuple) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_jobs(jobs: list, init, init_args: tuple, fn, workers: int, progress: bool, desc: str, total: int) -> None:
-    """Run ``fn`` over ``jobs`` here (workers <= 1) or in a spawn pool; ``fn`` returns the frames it wrote.
+    """Run ``fn`` over ``jobs`` here (workers <= 1) or in spawned processes; ``fn`` returns the frames it wrote.
 
-    ``init(*init_args)`` prepares each process; the tqdm bar counts frames up to ``total``.
+    ``init(*init_args)`` prepares each process; the tqdm bar counts frames up to ``total``. A worker process that
+    dies (killed, out of memory, or a calling script without a ``__main__`` guard, which a spawned process runs
+    again) raises ``RuntimeError`` here: ``multiprocessing.Pool`` would start a new worker for ever instead.
     """
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
     bar = tqdm(total=total, desc=desc, unit="frame", disable=not progress, dynamic_ncols=True)
     try:
         if workers <= 1 or len(jobs) < 2:
@@ -424,9 +429,21 @@ def run_jobs(jobs: list, init, init_args: tuple, fn, workers: int, progress: boo
                 bar.update(fn(job))
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(min(workers, len(jobs)), initializer=init, initargs=init_args) as pool:
-                for n in pool.imap_unordered(fn, jobs, chunksize=1 if len(jobs) < 64 else 4):
-                    bar.update(n)
+            with ProcessPoolExecutor(min(workers, len(jobs)), ctx, initializer=init, initargs=init_args) as ex:
+                try:
+                    for fut in as_completed([ex.submit(fn, job) for job in jobs]):
+                        bar.update(fut.result())
+                except BrokenProcessPool as e:
+                    raise RuntimeError(
+                        f"a {desc} rendering process died ({e}); if a script of yours called this, put its code "
+                        'under `if __name__ == "__main__":` (each rendering process imports that script again), '
+                        "or pass workers=1"
+                    ) from None
+                except BaseException:  # a failed job, Ctrl-C, SIGTERM: stop the others now, as Pool's exit did
+                    for p in list((getattr(ex, "_processes", None) or {}).values()):
+                        p.terminate()
+                    ex.shutdown(wait=False, cancel_futures=True)
+                    raise
     finally:
         bar.close()
 

@@ -115,8 +115,9 @@ def scale_by_piece(
     estimate, as ``sim3_scale``): a monocular system's scale drift, which one scale for the whole run hides.
 
     On MH_05 the runs that end 2-3 % long are 5-8 % long over their first 5 s and near 1 after 20 s
-    (reports/ablations.md). A piece with fewer than 3 poses, or whose true positions spread less than
-    ``SCALE_MIN_SPREAD_M`` (RMS about their mean; a hover), gets None.
+    (reports/ablations.md). A piece with fewer than 3 poses, whose true positions spread less than
+    ``SCALE_MIN_SPREAD_M`` (RMS about their mean; a hover), or whose alignment is degenerate (a straight line, or
+    an estimate that does not move: evo's Umeyama refuses a cross-covariance of rank under 2), gets None.
 
     Args:
         ts_ns: (N,) ns; est_xyz, ref_xyz: (N, 3) estimated and true positions at those times.
@@ -124,7 +125,7 @@ def scale_by_piece(
     Returns:
         One scale per piece from the first stamp on, in time order.
     """
-    from evo.core.geometry import umeyama_alignment
+    from evo.core.geometry import GeometryException, umeyama_alignment
 
     t = ns_to_s(np.asarray(ts_ns, np.int64) - int(ts_ns[0])) if len(ts_ns) else np.zeros(0)
     out: list[float | None] = []
@@ -134,8 +135,12 @@ def scale_by_piece(
         if m.sum() < 3 or np.sqrt(np.mean(np.sum((ref - ref.mean(0)) ** 2, 1))) < SCALE_MIN_SPREAD_M:
             out.append(None)
             continue
-        _, _, c = umeyama_alignment(est_xyz[m].T, ref.T, with_scale=True)
-        out.append(round(float(c), 4))
+        try:
+            _, _, c = umeyama_alignment(est_xyz[m].T, ref.T, with_scale=True)
+        except GeometryException:
+            out.append(None)
+            continue
+        out.append(round(float(c), 4) if np.isfinite(c) else None)
     return out
 
 

@@ -347,8 +347,8 @@ def _segments(system: SlamSystem, seq, ts: np.ndarray, T: np.ndarray, out: Path)
                         if "ate" in k2
                     }
                 )
-            except ValueError as e:
-                row["eval_error"] = str(e)
+            except Exception as e:  # noqa: BLE001 - as in _evaluate: a segment's score must not lose the outputs
+                row["eval_error"] = f"{type(e).__name__}: {e}"
         out_list.append(row)
     if len(out_list) > 1:
         lines = "".join(f"{ns_to_s(int(t)):.9f} {int(s)}\n" for t, s in zip(ts, seg, strict=True))

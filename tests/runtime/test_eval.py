@@ -82,5 +82,50 @@ def test_scale_by_piece_finds_a_scale_drift():
     assert ev.scale_by_piece(ts[:400], still, still, piece_s=1.0) == [None, None]
 
 
+def test_a_straight_piece_gets_no_scale_and_does_not_lose_the_run_metrics():
+    """A piece moving on a straight line (a robot driving straight) has no unique Sim(3) rotation: evo's Umeyama
+    raises on it, which lost every metric of the run. Now that piece gets None and the others their scale."""
+    ts, T = _gt(2000)  # 10 s at 200 Hz
+    t = ns_s(ts - ts[0])
+    line = t < 5.0
+    T[line, :3, 3] = np.stack([t[line], 0.5 * t[line], np.zeros(line.sum())], 1)  # 5 s straight
+    T[~line, :3, 3] = T[~line, :3, 3] - T[~line][0, :3, 3] + T[line][-1, :3, 3]  # then the curve, joined on
+    E = T.copy()
+    E[:, :3, 3] *= 1.05
+    m = ev.trajectory_metrics(ts, E, ts, T)
+    assert m["scale_by_piece"][0] is None
+    assert m["scale_by_piece"][1] == pytest.approx(1 / 1.05, abs=1e-4)
+    assert m["sim3_scale"] == pytest.approx(1 / 1.05, abs=1e-6)
+    frozen = np.tile(T[:1, :3, 3], (1000, 1))  # an estimate that does not move over a moving truth
+    assert ev.scale_by_piece(ts[:1000], frozen, T[:1000, :3, 3]) == [None]
+
+
+def test_a_segment_whose_score_fails_keeps_the_others_and_says_why(monkeypatch, tmp_path):
+    """runtime.run scores each segment on its own; any failure there becomes the segment's eval_error (it used to
+    catch only ValueError, and anything else from evo stopped the run before metrics.json)."""
+    from types import SimpleNamespace
+
+    from evo.core.geometry import GeometryException
+
+    from runtime import run
+
+    ts, T = _gt(400)
+    system = SimpleNamespace(records=[SimpleNamespace(segment=int(i >= 200)) for i in range(400)])
+    seq = SimpleNamespace(gt=SimpleNamespace(ts=ts, T_w_b=T))
+    real = ev.trajectory_metrics
+
+    def fails_on_the_second(est_ts, *a, **k):
+        if est_ts[0] == ts[200]:
+            raise GeometryException("Degenerate covariance rank, Umeyama alignment is not possible")
+        return real(est_ts, *a, **k)
+
+    monkeypatch.setattr(ev, "trajectory_metrics", fails_on_the_second)
+    rows = run._segments(system, seq, ts, T, tmp_path)
+    assert [r["poses"] for r in rows] == [200, 200]
+    assert rows[0]["ate_se3_rmse_m"] == pytest.approx(0.0, abs=1e-9) and "eval_error" not in rows[0]
+    assert rows[1]["eval_error"].startswith("GeometryException: Degenerate")
+    assert (tmp_path / "trajectory_segments.txt").is_file()
+
+
 def ns_s(ns):
     return np.asarray(ns, np.float64) * 1e-9

@@ -135,6 +135,13 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"{m['sim3_scale']:.4f}); RPE/{m['rpe_delta_frames']} frames {m['rpe_trans_rmse_m']:.4f} m, "
             f"{m['rpe_rot_rmse_deg']:.3f} deg"
         )
+        fs = m.get("from_start")
+        if fs and "ate_se3_rmse_m" in fs:
+            lines.append(
+                f"  ATE from the start on {fs['ate_se3_rmse_m']:.4f} m (SE3), {fs['ate_sim3_rmse_m']:.4f} m (Sim3): "
+                f"without the {fs['frames_left_out']} frames before the start, posed by the IMU alone "
+                f"(up to {fs['left_out_imu_max_s']:.1f} s of it; frames.csv)"
+            )
         if m.get("scale_by_piece"):
             from runtime.eval import SCALE_PIECE_S
 
@@ -174,7 +181,15 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             else ""
         )
         lines.append(f"  dense map: {m.get('dense_map_points', 0)} points{mesh}; wrote {out}/{{{dense_files}}}")
-    names = ("trajectory.txt", "keyframes.txt", "sparse_map.ply", "metrics.json", "trajectory_top.png", "slam.rrd")
+    names = (
+        "trajectory.txt",
+        "frames.csv",
+        "keyframes.txt",
+        "sparse_map.ply",
+        "metrics.json",
+        "trajectory_top.png",
+        "slam.rrd",
+    )
     lines.append(f"  wrote {out}/{{{', '.join(n for n in names if (out / n).exists())}}}")
     return "\n".join(lines)
 

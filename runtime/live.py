@@ -259,8 +259,8 @@ class LiveSlam:
         return self.system.trajectory()
 
     def close(self, out_dir: str | Path | None = None) -> dict:
-        """Process the waiting images, write ``trajectory.txt``, ``keyframes.txt``, ``sparse_map.ply`` and
-        ``metrics.json`` into ``out_dir`` (nothing when None), and return the metrics."""
+        """Process the waiting images, write ``trajectory.txt``, ``frames.csv``, ``keyframes.txt``, ``sparse_map.ply``
+        and ``metrics.json`` into ``out_dir`` (nothing when None), and return the metrics."""
         import json
 
         self.flush()
@@ -276,8 +276,10 @@ class LiveSlam:
             "initialised_at_s": ns_to_s(ts[0]) if len(ts) else None,
             "n_events": len(s.events),
         }
+        from runtime.run import _status_counts, _write_trajectory_and_map
+
+        metrics.update(_status_counts(s))  # frames with a pose by status, the longest on the IMU alone
         if out_dir is not None:
-            from runtime.run import _write_trajectory_and_map
 
             out = Path(out_dir)
             out.mkdir(parents=True, exist_ok=True)

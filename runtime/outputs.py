@@ -39,6 +39,7 @@ __all__ = [
 #: Everything ``dit-slam`` writes into its output folder (cleared before a new run writes there).
 SLAM_OUTPUTS = (
     "trajectory.txt",
+    "frames.csv",
     "keyframes.txt",
     "sparse_map.ply",
     "metrics.json",

@@ -1,7 +1,8 @@
 """Run the SLAM system over a whole sequence: prefetched images, the per-frame loop, and the outputs.
 
 Outputs in ``out_dir``: ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initialisation; see
-:meth:`runtime.slam.SlamSystem.trajectory`), ``keyframes.txt``, ``sparse_map.ply``, ``metrics.json``,
+:meth:`runtime.slam.SlamSystem.trajectory`), ``frames.csv`` (each of those poses' status and the seconds it rests on
+the IMU alone: :func:`runtime.trajectory.frame_status`), ``keyframes.txt``, ``sparse_map.ply``, ``metrics.json``,
 ``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``. With a dense configuration
 (:mod:`runtime.dense`) also ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics.
 
@@ -18,7 +19,7 @@ import logging
 import signal
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import asdict
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from runtime.image_check import ImageCheck
 from runtime.live import LiveSlam
 from runtime.outputs import atomic_text, atomic_write, prepare_run_dir
 from runtime.slam import SlamConfig, SlamSystem
+from runtime.trajectory import frame_status
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +109,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         "image_warnings": images.warnings,
         "timing_ms_per_frame": system.timing_summary(),
         "keyframe_reasons": dict(system.kf_reasons),
+        **_status_counts(system),
         "map_points_refound": system.n_map_matches,
         "initialised_at_s": (ns_to_s(ts[0]) if len(ts) else None),
         "initialisation": system.init_info,  # method, when, and the figures of the solve
@@ -137,6 +140,8 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         metrics["error"] = f"never initialised ({why})"
         log.error("never initialised: no trajectory (%s)", why)
     metrics.update(_evaluate(seq, ts, T, out, plot))
+    if (fs := _from_start(seq, system, ts, T)) is not None:
+        metrics["from_start"] = fs
     if plot and mapper is not None and mapper.dense_map is not None:
         from runtime.render import depth_panels, map_views
 
@@ -309,7 +314,8 @@ def _feed_imu(live: LiveSlam, seq, k: int, until_ns: int | None) -> int:
 
 
 def _write_trajectory_and_map(system: SlamSystem, out: Path):
-    """``trajectory.txt``, ``keyframes.txt`` and ``sparse_map.ply``; returns the trajectory and the points."""
+    """``trajectory.txt``, ``frames.csv``, ``keyframes.txt`` and ``sparse_map.ply``; returns the trajectory and the
+    points."""
     from runtime.io.ply import write_ply
     from runtime.io.tum import write_tum
 
@@ -320,7 +326,37 @@ def _write_trajectory_and_map(system: SlamSystem, out: Path):
     _, pts = system.map.all_points()
     pts = pts[np.isfinite(pts).all(1)] if pts.size else np.zeros((0, 3))
     atomic_write(out / "sparse_map.ply", lambda p: write_ply(p, pts))
+    status, imu_s = frame_status(system.records)
+    rows = "".join(f"{t},{st},{s:.3f}\n" for t, st, s in zip(ts.tolist(), status, imu_s.tolist(), strict=True))
+    atomic_text(out / "frames.csv", "#timestamp [ns],status,imu_only_s\n" + rows)
     return ts, T, pts
+
+
+def _status_counts(system: SlamSystem) -> dict:
+    """``frame_status``: frames with a pose by status (``frames.csv``; :func:`runtime.trajectory.frame_status`), and
+    ``imu_only_max_s``: the longest any pose rested on the IMU alone."""
+    status, imu_s = frame_status(system.records)
+    return {"frame_status": dict(Counter(status)), "imu_only_max_s": round(float(imu_s.max(initial=0.0)), 3)}
+
+
+def _from_start(seq, system: SlamSystem, ts: np.ndarray, T: np.ndarray) -> dict | None:
+    """ATE of the frames from the start on, without those kept from before it and posed by the IMU alone
+    (``imu_backfill``: up to ``dynamic_init.backfill_s`` of dead reckoning, which can dominate a run's ATE); None
+    when there are none or no ground truth."""
+    from runtime import eval as ev
+
+    status, imu_s = frame_status(system.records)
+    keep = np.array([s != "imu_backfill" for s in status], dtype=bool)
+    if seq.gt is None or keep.all() or keep.sum() < 3:
+        return None
+    try:
+        m = ev.trajectory_metrics(ts[keep], T[keep], seq.gt.ts, seq.gt.T_w_b)
+    except Exception as e:  # noqa: BLE001 - evaluation must not lose the run's outputs
+        return {"eval_error": f"{type(e).__name__}: {e}"}
+    return {k: m[k] for k in ("ate_se3_rmse_m", "ate_sim3_rmse_m", "sim3_scale", "eval_frames")} | {
+        "frames_left_out": int((~keep).sum()),
+        "left_out_imu_max_s": round(float(imu_s[~keep].max()), 3),
+    }
 
 
 def _segments(system: SlamSystem, seq, ts: np.ndarray, T: np.ndarray, out: Path) -> list[dict]:

@@ -81,6 +81,8 @@ def backfill_records(system, st, kf_ids: list[int]) -> None:
         is_kf = t_ref == snap.ts
         rec = FrameRecord(snap.ts, snap.frame_idx, ref_id, inv_T(T_ref) @ T, T.copy(), is_kf, "init")
         rec.segment = system.segment
+        if st.t_window is not None and snap.ts < st.t_window:  # kept from before the start: the IMU alone
+            rec.status, rec.imu_s = "imu_backfill", ns_to_s(st.t_window - snap.ts)
         if is_kf:
             rec.T_created = T.copy()
         system.records.append(rec)
@@ -175,7 +177,11 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     for k in [k for k in system.map.history if k not in kept]:  # the discarded start's keyframes
         del system.map.history[k]
     moved = StartState(
-        st.method, [(s, A @ T, v) for s, T, v in st.keyframes], st.bias, [(s, A @ T) for s, T in st.frames]
+        st.method,
+        [(s, A @ T, v) for s, T, v in st.keyframes],
+        st.bias,
+        [(s, A @ T) for s, T in st.frames],
+        t_window=st.t_window,
     )
     backfill_records(system, moved, kf_ids)
     system.last_kf_feats = feats

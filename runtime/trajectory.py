@@ -23,9 +23,33 @@ class FrameRecord:
     T_rel: np.ndarray  # (4, 4) T_kf_b: pose relative to the reference keyframe at the time
     T_online: np.ndarray  # (4, 4) causal estimate T_w_b
     is_kf: bool
-    status: str  # tracking | coasting | no_image | still
+    status: str  # tracking | coasting | no_image | still | init | imu_backfill (see :func:`frame_status`)
     T_created: np.ndarray | None = None  # keyframes: the pose they entered the window with (before LM)
     segment: int = 0  # trajectory segment: a new one (in a new frame) after each re-initialisation from scratch
+    imu_s: float = 0.0  # imu_backfill: seconds of IMU integrated back from the start's first posed frame
+
+
+#: statuses whose pose comes from the IMU alone
+IMU_ONLY = ("coasting", "no_image", "imu_backfill")
+
+
+def frame_status(records: list[FrameRecord]) -> tuple[list[str], np.ndarray]:
+    """Each record's status and the seconds its pose rests on the IMU alone (in the records' order).
+
+    ``tracking``, ``still`` (at rest), ``init`` (posed by the start's own window): 0. ``coasting`` (too few tracked
+    landmarks) and ``no_image``: the time since the last frame with a visual pose. ``imu_backfill``: a frame kept
+    from before the start, posed by integrating the IMU back from the start's first posed frame; the time to it."""
+    status = [r.status for r in records]
+    imu_s = np.zeros(len(records))
+    last_visual = None
+    for i, r in enumerate(records):
+        if r.status == "imu_backfill":
+            imu_s[i] = r.imu_s
+        elif r.status in IMU_ONLY:
+            imu_s[i] = (r.ts - last_visual) * 1e-9 if last_visual is not None else 0.0
+        else:
+            last_visual = r.ts
+    return status, imu_s
 
 
 def fill_trajectory(records: list[FrameRecord], history: dict, mode: str = "refined") -> tuple[np.ndarray, np.ndarray]:

@@ -71,6 +71,7 @@ class StartState:
     sigmas: dict = field(default_factory=dict)  # prior sigmas of the first state (backend.initialize)
     info: dict = field(default_factory=dict)
     noise: tuple[float, float] | None = None  # measured gyro / accel noise level (static start)
+    t_window: int | None = None  # ns, the first frame the start's own window poses; older ones are integrated back
 
 
 class InitRunner:
@@ -140,7 +141,8 @@ class InitRunner:
             first = rest[0][0] if rest else newest
             before = self._before(first, res.T_w_b, res.v_w, res.bias)
             info = dict(res.info, **backfill_info(before, first.ts))
-            return StartState("static", [(newest, res.T_w_b, res.v_w)], res.bias, rest + before, {}, info, res.noise)
+            kf = [(newest, res.T_w_b, res.v_w)]
+            return StartState("static", kf, res.bias, rest + before, {}, info, res.noise, t_window=first.ts)
         return self.try_motion(ts, allow_hover=True)
 
     def try_motion(
@@ -200,7 +202,7 @@ class InitRunner:
             failures=dict(self.failures.most_common(6)),
             **backfill_info(before, sel[0].ts),
         )
-        return StartState(method, kfs, bias, frames, sigmas, info)
+        return StartState(method, kfs, bias, frames, sigmas, info, t_window=sel[0].ts)
 
     def _motion(self, ts: int, base: tuple, since: int | None) -> tuple:
         """Structure from motion and alignment over the window ``base`` (:meth:`_window`), or, without ``since``, a

@@ -49,6 +49,13 @@ def test_pipeline_on_10s_rendered_sequence_reaches_bounded_ate_and_writes_output
     assert m["frames"] == 200 and m["frames_with_pose"] >= 200 - 3.5 * 20  # initialised after the 2.5 s rest
     ts, T = read_tum(out / "trajectory.txt")
     assert len(ts) == m["frames_with_pose"] and np.all(np.diff(ts) > 0)
+    # frames.csv: one row per pose, with its status and its seconds on the IMU alone
+    rows = [line.split(",") for line in (out / "frames.csv").read_text().splitlines()[1:]]
+    assert [int(r[0]) for r in rows] == ts.tolist()
+    counts = {st: sum(r[1] == st for r in rows) for st in {r[1] for r in rows}}
+    assert counts == m["frame_status"] and sum(counts.values()) == m["frames_with_pose"]
+    assert max(float(r[2]) for r in rows) == pytest.approx(m["imu_only_max_s"], abs=1e-3)
+    assert all(float(r[2]) == 0 for r in rows if r[1] in ("tracking", "still", "init"))
     kts, _ = read_tum(out / "keyframes.txt")
     assert len(kts) == m["keyframes"] > 5
     xyz, _ = read_ply(out / "sparse_map.ply")
@@ -97,7 +104,14 @@ def test_no_ground_truth_still_writes_outputs(tiny, tmp_path):
     shutil.rmtree(root / "mav0" / "state_groundtruth_estimate0")
     m = run_sequence(read_euroc(root), tmp_path / "out", progress=False, max_frames=100)
     assert "ate_se3_rmse_m" not in m and m["frames_with_pose"] > 30
-    for name in ("trajectory.txt", "keyframes.txt", "sparse_map.ply", "metrics.json", "trajectory_top.png"):
+    for name in (
+        "trajectory.txt",
+        "frames.csv",
+        "keyframes.txt",
+        "sparse_map.ply",
+        "metrics.json",
+        "trajectory_top.png",
+    ):
         assert (tmp_path / "out" / name).is_file()
 
 

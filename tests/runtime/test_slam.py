@@ -10,6 +10,7 @@ import pytest
 from runtime import eval as ev
 from runtime.backend.imu import ImuStream
 from runtime.slam import SlamConfig, SlamSystem
+from runtime.trajectory import FrameRecord, frame_status
 from tests.runtime.synth import EUROC_CAM, EUROC_T_BS, FakeTracker, ImuNoise, Motion, make_imu, room_points
 
 T0 = 10**9
@@ -95,6 +96,30 @@ def test_a_sequence_that_starts_moving_initialises_in_motion(caplog):
     assert len(system.records) >= 0.97 * n_frames  # the frames before initialisation have poses too
     assert met["ate_se3_rmse_m"] < 0.03, met
     assert abs(met["sim3_scale"] - 1) < 0.03, met
+
+
+def test_frames_kept_from_before_an_in_motion_start_are_marked_as_the_imus_alone():
+    # no features over the first 1.5 s: the start comes after them, and they are integrated back from it
+    system, m = run(6.0, motion=Motion(seed=0, t_rest=0.0, t_ramp=0.3, amp=2.0), blank=(0.0, 1.5))
+    info = system.init_info
+    status, imu_s = frame_status(system.records)
+    back = np.array([s == "imu_backfill" for s in status])
+    assert info["method"] == "dynamic" and info["backfilled_frames"] == 30 and back.sum() == 30
+    assert back[:30].all() and not back[30:].any()  # the oldest ones
+    assert imu_s[back].max() == pytest.approx(info["backfilled_s"]) == pytest.approx(1.5)
+    assert np.all(np.diff(imu_s[back]) < 0)  # the older, the longer on the IMU
+    assert all(imu_s[i] == 0 for i, s in enumerate(status) if s in ("init", "tracking"))
+
+
+def test_frame_status_gives_the_seconds_each_pose_rests_on_the_imu_alone():
+    def rec(t_s, status, imu_s=0.0):
+        return FrameRecord(T0 + int(t_s * 1e9), 0, 0, np.eye(4), np.eye(4), False, status, imu_s=imu_s)
+
+    recs = [rec(0.0, "imu_backfill", 1.0), rec(0.5, "imu_backfill", 0.5), rec(1.0, "init"), rec(1.5, "tracking")]
+    recs += [rec(2.0, "coasting"), rec(2.5, "no_image"), rec(3.0, "coasting"), rec(3.5, "still"), rec(4.0, "coasting")]
+    status, imu_s = frame_status(recs)
+    assert status == [r.status for r in recs]
+    assert np.allclose(imu_s, [1.0, 0.5, 0, 0, 0.5, 1.0, 1.5, 0, 0.5])
 
 
 def test_textureless_period_coasts_on_imu_and_recovers():

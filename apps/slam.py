@@ -181,16 +181,9 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             else ""
         )
         lines.append(f"  dense map: {m.get('dense_map_points', 0)} points{mesh}; wrote {out}/{{{dense_files}}}")
-    names = (
-        "trajectory.txt",
-        "frames.csv",
-        "keyframes.txt",
-        "sparse_map.ply",
-        "metrics.json",
-        "trajectory_top.png",
-        "slam.rrd",
-    )
-    lines.append(f"  wrote {out}/{{{', '.join(n for n in names if (out / n).exists())}}}")
+    from runtime.outputs import RUN_OUTPUTS
+
+    lines.append(f"  wrote {out}/{{{', '.join(n for n in RUN_OUTPUTS if (out / n).exists())}}}")
     return "\n".join(lines)
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 from runtime.errors import UsageError
 
 __all__ = [
+    "RUN_OUTPUTS",
     "SLAM_OUTPUTS",
     "atomic_folder",
     "atomic_text",
@@ -36,8 +37,8 @@ __all__ = [
     "prepare_run_dir",
 ]
 
-#: Everything ``dit-slam`` writes into its output folder (cleared before a new run writes there).
-SLAM_OUTPUTS = (
+#: What every ``dit-slam`` run writes into its output folder (``slam.rrd`` with ``viz=rerun``).
+RUN_OUTPUTS = (
     "trajectory.txt",
     "frames.csv",
     "keyframes.txt",
@@ -45,6 +46,9 @@ SLAM_OUTPUTS = (
     "metrics.json",
     "trajectory_top.png",
     "slam.rrd",
+)
+#: Everything ``dit-slam`` writes into its output folder (cleared before a new run writes there).
+SLAM_OUTPUTS = RUN_OUTPUTS + (
     "dense_map.ply",
     "dense_map.png",
     "keyframe_depth.png",

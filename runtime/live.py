@@ -280,7 +280,6 @@ class LiveSlam:
 
         metrics.update(_status_counts(s))  # frames with a pose by status, the longest on the IMU alone
         if out_dir is not None:
-
             out = Path(out_dir)
             out.mkdir(parents=True, exist_ok=True)
             _, _, pts = _write_trajectory_and_map(s, out)

@@ -118,9 +118,10 @@ class InitRunner:
 
         ``inf`` (the images do not show rest) when the frames since a (re)start cover less than half the window,
         or when the window's first and last frame both hold ``MIN_FLOW_TRACKS`` tracks but share fewer: the tracks
-        did not survive it. None (the IMU decides alone) when either frame holds fewer: a view with nothing to
-        track. Without these, slow motion passed as rest: on the realistic ``tabletop`` seed 2 the IMU-only test
-        accepted a camera moving at 0.17-0.21 m/s, three times, and each start diverged."""
+        did not survive it. None (the IMU decides alone, at its noise level: :mod:`runtime.init.static`) when
+        either frame holds fewer: a view with nothing to track. Without these, slow motion passed as rest: on the
+        realistic ``tabletop`` seed 2 the IMU-only test accepted a camera moving at 0.17-0.21 m/s, three times, and
+        each start diverged."""
         snaps = [s for s in self.frames if s.ts >= w0]
         if len(snaps) < 2 or snaps[-1].ts - snaps[0].ts < 0.5 * (ts - w0):
             return math.inf

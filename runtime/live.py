@@ -277,12 +277,14 @@ class LiveSlam:
             "n_events": len(s.events),
         }
         from runtime.run import _status_counts, _write_trajectory_and_map
+        from runtime.trajectory import frame_status
 
-        metrics.update(_status_counts(s))  # frames with a pose by status, the longest on the IMU alone
+        frames = frame_status(s.records)
+        metrics.update(_status_counts(frames))  # frames with a pose by status, the longest on the IMU alone
         if out_dir is not None:
             out = Path(out_dir)
             out.mkdir(parents=True, exist_ok=True)
-            _, _, pts = _write_trajectory_and_map(s, out)
+            _, _, pts = _write_trajectory_and_map(s, out, frames)
             metrics["map_points"] = int(pts.shape[0])
             (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
         return metrics

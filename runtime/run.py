@@ -91,7 +91,8 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
     if mapper is not None:
         mapper.drain()  # the network thread's map codes, depth metrics and fusion of the frames run count in wall_s
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
-    ts, T, pts = _write_trajectory_and_map(system, out)
+    frames = frame_status(system.records)  # each pose's status and seconds on the IMU alone
+    ts, T, pts = _write_trajectory_and_map(system, out, frames)
     metrics = {
         "run_id": run_id,
         "complete": done == n,
@@ -109,7 +110,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         "image_warnings": images.warnings,
         "timing_ms_per_frame": system.timing_summary(),
         "keyframe_reasons": dict(system.kf_reasons),
-        **_status_counts(system),
+        **_status_counts(frames),
         "map_points_refound": system.n_map_matches,
         "initialised_at_s": (ns_to_s(ts[0]) if len(ts) else None),
         "initialisation": system.init_info,  # method, when, and the figures of the solve
@@ -140,7 +141,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         metrics["error"] = f"never initialised ({why})"
         log.error("never initialised: no trajectory (%s)", why)
     metrics.update(_evaluate(seq, ts, T, out, plot))
-    if (fs := _from_start(seq, system, ts, T)) is not None:
+    if (fs := _from_start(seq, frames, ts, T)) is not None:
         metrics["from_start"] = fs
     if plot and mapper is not None and mapper.dense_map is not None:
         from runtime.render import depth_panels, map_views
@@ -313,9 +314,9 @@ def _feed_imu(live: LiveSlam, seq, k: int, until_ns: int | None) -> int:
     return max(k, end)
 
 
-def _write_trajectory_and_map(system: SlamSystem, out: Path):
-    """``trajectory.txt``, ``frames.csv``, ``keyframes.txt`` and ``sparse_map.ply``; returns the trajectory and the
-    points."""
+def _write_trajectory_and_map(system: SlamSystem, out: Path, frames: tuple[list[str], np.ndarray]):
+    """``trajectory.txt``, ``frames.csv`` (``frames``: :func:`runtime.trajectory.frame_status` of the system's
+    records), ``keyframes.txt`` and ``sparse_map.ply``; returns the trajectory and the points."""
     from runtime.io.ply import write_ply
     from runtime.io.tum import write_tum
 
@@ -326,26 +327,26 @@ def _write_trajectory_and_map(system: SlamSystem, out: Path):
     _, pts = system.map.all_points()
     pts = pts[np.isfinite(pts).all(1)] if pts.size else np.zeros((0, 3))
     atomic_write(out / "sparse_map.ply", lambda p: write_ply(p, pts))
-    status, imu_s = frame_status(system.records)
+    status, imu_s = frames
     rows = "".join(f"{t},{st},{s:.3f}\n" for t, st, s in zip(ts.tolist(), status, imu_s.tolist(), strict=True))
     atomic_text(out / "frames.csv", "#timestamp [ns],status,imu_only_s\n" + rows)
     return ts, T, pts
 
 
-def _status_counts(system: SlamSystem) -> dict:
-    """``frame_status``: frames with a pose by status (``frames.csv``; :func:`runtime.trajectory.frame_status`), and
-    ``imu_only_max_s``: the longest any pose rested on the IMU alone."""
-    status, imu_s = frame_status(system.records)
+def _status_counts(frames: tuple[list[str], np.ndarray]) -> dict:
+    """``frame_status``: frames with a pose by status (``frames.csv``; ``frames`` from
+    :func:`runtime.trajectory.frame_status`), and ``imu_only_max_s``: the longest any pose rested on the IMU alone."""
+    status, imu_s = frames
     return {"frame_status": dict(Counter(status)), "imu_only_max_s": round(float(imu_s.max(initial=0.0)), 3)}
 
 
-def _from_start(seq, system: SlamSystem, ts: np.ndarray, T: np.ndarray) -> dict | None:
+def _from_start(seq, frames: tuple[list[str], np.ndarray], ts: np.ndarray, T: np.ndarray) -> dict | None:
     """ATE of the frames from the start on, without those kept from before it and posed by the IMU alone
     (``imu_backfill``: up to ``dynamic_init.backfill_s`` of dead reckoning, which can dominate a run's ATE); None
     when there are none or no ground truth."""
     from runtime import eval as ev
 
-    status, imu_s = frame_status(system.records)
+    status, imu_s = frames
     keep = np.array([s != "imu_backfill" for s in status], dtype=bool)
     if seq.gt is None or keep.all() or keep.sum() < 3:
         return None

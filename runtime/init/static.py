@@ -196,16 +196,17 @@ class StaticInitializer:
             return None
         st = imu_rest_stats(imu_ts, gyro, accel, c.block_s, self.gravity)
         still = st.gyro_std < c.gyro_std_max and st.accel_std < c.accel_std_max and st.gravity_err < c.gravity_tol
+        noise_ratio = max(st.gyro_ratio, st.accel_ratio)
         if flow_px is not None:
             still = still and flow_px < c.flow_max_px
         else:  # the IMU decides alone: its slow content must be at its noise level, not only below the thresholds
-            still = still and max(st.gyro_ratio, st.accel_ratio) < c.imu_alone_ratio_max
+            still = still and noise_ratio < c.imu_alone_ratio_max
         self.last_stats = {
             "gyro_std": st.gyro_std,
             "accel_std": st.accel_std,
             "gravity_err": st.gravity_err,
             "flow_px": flow_px,
-            "noise_ratio": max(st.gyro_ratio, st.accel_ratio),
+            "noise_ratio": noise_ratio,
         }
         if not still:
             if not self.reported_moving and ns_to_s(ts_now - self.t_first) >= c.report_after_s:

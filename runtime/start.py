@@ -139,34 +139,51 @@ def adapt_imu_noise(system, t0: int, t1: int) -> tuple[float, float] | None:
 
 
 def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
-    """After a start while turning in place (velocity taken as 0): re-initialise from structure from motion as
-    soon as the motion allows it, within ``refine_within_s``, over all frames since the first, which then take
-    the new poses (in the current map frame). From ``restart_recent_after_s`` after the start on, when those frames
-    fail (too few tracks common to the first and the newest on a bare wall), a recent window as a first in-motion
-    start takes it, the older frames integrated back from it: on the realistic ``handheld`` seed 102 a start turning
-    in place had read 0.38 m/s of translation as a 0.05 rad/s gyroscope bias, and no restart over every frame came
-    (12.3 m; 48.1 mm with the fallback). Returns True when it did.
+    """Re-initialise in motion, within the current map frame, once structure from motion works, within
+    ``refine_within_s``. Returns True when it did. Two cases arm it:
 
-    (Restarting this way after a long loss of visual tracking was tried and removed: on the synthetic test with
-    tracking forced lost, restarts every second gave ATE 0.46 m; bridging on the IMU and triangulating from the
-    coasted keyframes keeps it at centimetres.)"""
+    - After a start while turning in place (velocity taken as 0): over all frames since the first, which then take
+      the new poses. From ``restart_recent_after_s`` after the start on, when those frames fail (too few tracks
+      common to the first and the newest on a bare wall), a recent window as a first in-motion start takes it, the
+      older frames integrated back from it: on the realistic ``handheld`` seed 102 a start turning in place had read
+      0.38 m/s of translation as a 0.05 rad/s gyroscope bias, and no restart over every frame came (12.3 m; 48.1 mm
+      with the fallback).
+    - After a loss of visual tracking while the front end still holds ``restart_lost_min_tracks`` tracks
+      (``system.restart_after_loss``): the window's estimate disagrees with a textured view. Over a recent window;
+      every record of the last ``backfill_s`` older than it is integrated back from the new state on the IMU. On
+      ``handheld`` seed 115 a restart with a 5.5x scale lost every landmark while 176 tracks were in view, and the
+      run diverged (14.3 m; 39 mm with this restart). Tracking regained first cancels it.
+
+    (Restarting after any long loss of visual tracking was tried and removed: on the synthetic test with tracking
+    forced lost, restarts every second gave ATE 0.46 m; bridging on the IMU and triangulating from the coasted
+    keyframes keeps it at centimetres. A bare view is not a disagreement.)"""
+    loss = system.restart_after_loss
     if system.restart_until is not None and ts > system.restart_until:
-        system.restart_until = None
-        system.event(ts, "no in-motion re-initialisation after the start turning in place: keeping it")
+        system.restart_until, system.restart_after_loss = None, False
+        what = "the loss with tracks in view" if loss else "the start turning in place"
+        system.event(ts, f"no in-motion re-initialisation after {what}: keeping the estimate")
     run = system.initializer
     if system.restart_until is None:
         if run.frames:
             run.reset()
         return False
-    since = system.t_first
-    run.add(Snapshot(frame_idx, ts, feats, image if system.dense is not None else None), keep_since=since)
     d = system.cfg.dynamic_init
+    since = None if loss else system.t_first
+    keep = max(system.t_first, ts - s_to_ns(d.backfill_s)) if loss else since
+    run.add(Snapshot(frame_idx, ts, feats, image if system.dense is not None else None), keep_since=keep)
     started = system.restart_until - s_to_ns(d.refine_within_s)  # the start turning in place
     after = d.restart_recent_after_s
-    recent_from = started + s_to_ns(after) if np.isfinite(after) else None
+    recent_from = started + s_to_ns(after) if np.isfinite(after) and not loss else None
     st = run.try_motion(ts, allow_hover=False, since=since, recent_from=recent_from)
     if st is None:
         return False
+    if loss:  # the records of the estimate that lost the view, from the new state backwards
+        snap0, T0, v0 = st.keyframes[0]
+        kept = {s.ts for s, _ in st.frames}
+        older = [
+            Snapshot(r.frame_idx, r.ts, None) for r in system.records if keep <= r.ts < snap0.ts and r.ts not in kept
+        ]
+        st.frames.extend(propagate_back(system.imu, older, snap0.ts, T0, v0, st.bias))
     A = frame_alignment(system.T_cur, st.keyframes[-1][1])
     system.backend.clear_window()
     system.track_obs = {}
@@ -188,6 +205,8 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     system.lost, system.acquired, system.building = False, False, False
     system.restart_until, system.reloc_pending = None, None
     run.reset()
-    system.restarts.append({"t_s": round(ns_to_s(ts), 4), "why": "after a start turning in place", **st.info})
-    system.event(ts, f"re-initialised in motion after the start turning in place, same map frame: {st.info}")
+    why = "after a loss with tracks in view" if loss else "after a start turning in place"
+    system.restart_after_loss = False
+    system.restarts.append({"t_s": round(ns_to_s(ts), 4), "why": why, **st.info})
+    system.event(ts, f"re-initialised in motion {why}, same map frame: {st.info}")
     return True

@@ -337,6 +337,7 @@ def test_a_restart_may_take_a_recent_window_from_restart_recent_after_s_on(after
     system = SimpleNamespace(
         cfg=cfg,
         restart_until=t_hover + int(cfg.dynamic_init.refine_within_s * 1e9),
+        restart_after_loss=False,
         initializer=run,
         t_first=10**9,
         dense=None,
@@ -431,3 +432,111 @@ def test_the_earlier_attempts_bias_needs_two_that_agree_within_the_window():
     run.dyn = DynamicInitConfig(bias_agree=0.0)
     run.biases.extend([(s, b), (s, b)])
     assert run.earlier_bias(s) is None
+
+
+def _lost_system(n_tracks: int, restart_until=None):
+    """What ``SlamSystem._update_lost`` reads, tracking acquired and not lost."""
+    from types import SimpleNamespace
+
+    from runtime.slam import SlamConfig
+
+    events = []
+    return SimpleNamespace(
+        cfg=SlamConfig(),
+        acquired=True,
+        lost=False,
+        lost_since=None,
+        coast_warned=False,
+        reloc_pending=None,
+        restart_until=restart_until,
+        restart_after_loss=False,
+        tracker=SimpleNamespace(n_tracks=n_tracks),
+        initializer=SimpleNamespace(reset=lambda: events.append("reset")),
+        event=lambda ts, msg, level=None: events.append(msg),
+        events=events,
+    )
+
+
+def test_a_loss_with_tracks_in_view_arms_a_restart_and_a_bare_view_does_not():
+    """Visual tracking lost while the front end still holds ``restart_lost_min_tracks`` tracks: the estimate
+    disagrees with a textured view, and an in-motion restart is tried for ``refine_within_s``; regaining tracking
+    cancels it. With fewer tracks (a bare wall) the system coasts as before, and a pending restart after a start
+    turning in place is left as it is."""
+    from runtime.slam import SlamSystem
+
+    ts = 7 * 10**9
+    n = _lost_system(0).cfg.restart_lost_min_tracks
+    textured = _lost_system(n)
+    SlamSystem._update_lost(textured, ts, 3)
+    assert textured.lost and textured.restart_after_loss
+    assert textured.restart_until == ts + int(textured.cfg.dynamic_init.refine_within_s * 1e9)
+    assert "reset" in textured.events  # the restart's frames start at the loss
+    SlamSystem._update_lost(textured, ts + 10**8, 30)  # regained: the images agree again
+    assert not textured.lost and textured.restart_until is None and not textured.restart_after_loss
+
+    bare = _lost_system(n - 1)
+    SlamSystem._update_lost(bare, ts, 3)
+    assert bare.lost and bare.restart_until is None and not bare.restart_after_loss
+
+    pending = _lost_system(n, restart_until=ts + 5 * 10**9)
+    SlamSystem._update_lost(pending, ts, 3)
+    assert pending.restart_until == ts + 5 * 10**9 and not pending.restart_after_loss
+
+
+def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_records(monkeypatch):
+    """After a loss with tracks in view the restart takes a recent window (``since`` None), keeps the frames of the
+    last ``backfill_s``, and every record of those seconds older than the new window is integrated back from the new
+    state on the IMU (known answer: no rotation, the accelerometer reading gravity alone, so ``p(t) = p0 - v0 (t0 -
+    t)``); the records' poses of the estimate that lost the view are replaced."""
+    from types import SimpleNamespace
+
+    import runtime.start as start
+    from runtime.init.runner import Snapshot, StartState
+    from runtime.slam import SlamConfig
+
+    cfg = SlamConfig()
+    t_first, ts = 10**9, 13 * 10**9
+    keep = ts - int(cfg.dynamic_init.backfill_s * 1e9)
+    t_imu = np.arange(0, 14 * 200) * 5_000_000 + 5 * 10**8
+    imu = ImuStream(t_imu, np.zeros((t_imu.size, 3)), np.tile([0.0, 0.0, GRAVITY], (t_imu.size, 1)), 200.0)
+    t_kf = 12 * 10**9
+    T0, v0 = np.eye(4), np.array([1.0, 0.5, 0.0])
+    T0[:3, 3] = [4.0, 2.0, 1.0]
+    st = StartState("dynamic", [(Snapshot(240, t_kf, None), T0, v0)], np.zeros(6), [], info={"scale": 1.0})
+    calls, added = [], []
+
+    def try_motion(t, **k):
+        calls.append(k)
+        return st
+
+    records = [SimpleNamespace(ts=int(t), frame_idx=i, ref_kf=0) for i, t in enumerate(range(t_first, ts, 10**9))]
+    system = SimpleNamespace(
+        cfg=cfg,
+        restart_until=ts + 10**9,
+        restart_after_loss=True,
+        initializer=SimpleNamespace(
+            add=lambda s, keep_since: added.append(keep_since), try_motion=try_motion, reset=lambda: None
+        ),
+        t_first=t_first,
+        dense=None,
+        imu=imu,
+        records=records,
+        T_cur=T0.copy(),
+        backend=SimpleNamespace(clear_window=lambda: None),
+        map=SimpleNamespace(history={}),
+        restarts=[],
+        event=lambda *a, **k: None,
+    )
+    moved = []
+    monkeypatch.setattr(start, "seed_window", lambda system, st, A: [7])
+    monkeypatch.setattr(start, "backfill_records", lambda system, m, kf_ids: moved.append(m))
+    assert start.try_restart(system, 260, ts, None, None) is True
+    (k,) = calls
+    assert k["since"] is None and k["recent_from"] is None and added == [keep]
+    assert system.restarts[-1]["why"] == "after a loss with tracks in view" and not system.restart_after_loss
+    assert [r.ts for r in system.records] == [r.ts for r in records if r.ts < keep]  # older ones kept as they were
+    (m,) = moved
+    reposed = {s.ts: T for s, T in m.frames}
+    assert sorted(reposed) == [r.ts for r in records if keep <= r.ts < t_kf]
+    for t, T in reposed.items():
+        np.testing.assert_allclose(T[:3, 3], T0[:3, 3] - v0 * (t_kf - t) * 1e-9, atol=1e-6)

@@ -118,6 +118,31 @@ def _check_args(cfg) -> None:
         raise UsageError(f"max_frames={mf!r}: expected a positive number of frames or null (all)")
 
 
+def _story(m: dict) -> str | None:
+    """How the run went, in one line: its start, restarts, IMU-only stretches, relocalisations and segments."""
+    ini = m.get("initialisation") or {}
+    if not ini:
+        return None
+    t_first = ini["t_s"] - ini["after_s"]
+    parts = [f"started ({ini['method']}) {ini['after_s']:.2f} s in"]
+    for r in m.get("restarts") or []:
+        parts.append(f"restarted at {r['t_s'] - t_first:.2f} s ({r['why']})")
+    status = m.get("frame_status") or {}
+    if status.get("imu_backfill"):
+        back = (m.get("from_start") or {}).get("left_out_imu_max_s")
+        parts.append(
+            f"{status['imu_backfill']} frames before a start posed by the IMU alone"
+            + (f" (up to {back:.1f} s)" if back else "")
+        )
+    if status.get("coasting"):
+        parts.append(f"{status['coasting']} frames coasting on the IMU")
+    if m.get("relocalisations"):
+        parts.append(f"{len(m['relocalisations'])} relocalisation(s)")
+    if len(m.get("segments") or []) > 1:
+        parts.append(f"{len(m['segments'])} segments (reset after a divergence or an IMU gap)")
+    return "  " + "; ".join(parts)
+
+
 def _summary(m: dict, out: Path, dense: bool) -> str:
     lines = []
     if not m.get("complete", True):
@@ -129,6 +154,9 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
         f"  frames {m.get('frames_processed', m['frames'])} (with pose {m['frames_with_pose']}), keyframes "
         f"{m['keyframes']}, map points {m['map_points']}, {m['fps']:.1f} frames/s"
     )
+    story = _story(m)
+    if story:
+        lines.append(story)
     if "ate_se3_rmse_m" in m:
         lines.append(
             f"  ATE RMSE {m['ate_se3_rmse_m']:.4f} m (SE3), {m['ate_sim3_rmse_m']:.4f} m (Sim3, scale "

@@ -246,3 +246,26 @@ def test_a_refined_run_decodes_each_image_once(tiny, tmp_path, monkeypatch):
     m = run_sequence(read_euroc(tiny), tmp_path / "out", SlamConfig(), progress=False, plot=False)
     assert m["intrinsics"]["first_pass_frames"] == m["frames"] == 200
     assert sorted(decoded) == list(range(200))
+
+
+def test_the_summary_says_how_the_run_went():
+    """The console summary's story line, from metrics.json's fields (known answer); none before a start."""
+    from apps.slam import _story
+
+    m = {
+        "initialisation": {"method": "hover", "t_s": 101.1, "after_s": 1.1},
+        "restarts": [
+            {"t_s": 104.1, "why": "after a start turning in place"},
+            {"t_s": 109.15, "why": "after a loss with tracks in view"},
+        ],
+        "frame_status": {"tracking": 400, "imu_backfill": 165, "coasting": 12},
+        "from_start": {"left_out_imu_max_s": 8.2},
+        "relocalisations": [{"lost_s": 3.0}],
+        "segments": [{"segment": 0}, {"segment": 1}],
+    }
+    assert _story(m) == (
+        "  started (hover) 1.10 s in; restarted at 4.10 s (after a start turning in place); restarted at 9.15 s "
+        "(after a loss with tracks in view); 165 frames before a start posed by the IMU alone (up to 8.2 s); "
+        "12 frames coasting on the IMU; 1 relocalisation(s); 2 segments (reset after a divergence or an IMU gap)"
+    )
+    assert _story({"initialisation": None}) is None

@@ -131,7 +131,7 @@ def _story(m: dict) -> str | None:
     if status.get("imu_backfill"):
         back = (m.get("from_start") or {}).get("left_out_imu_max_s")
         parts.append(
-            f"{status['imu_backfill']} frames before a start posed by the IMU alone"
+            f"{status['imu_backfill']} frames before a (re)start posed by the IMU alone"
             + (f" (up to {back:.1f} s)" if back else "")
         )
     if status.get("coasting"):
@@ -167,7 +167,7 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
         if fs and "ate_se3_rmse_m" in fs:
             lines.append(
                 f"  ATE from the start on {fs['ate_se3_rmse_m']:.4f} m (SE3), {fs['ate_sim3_rmse_m']:.4f} m (Sim3): "
-                f"without the {fs['frames_left_out']} frames before the start, posed by the IMU alone "
+                f"without the {fs['frames_left_out']} frames before a (re)start, posed by the IMU alone "
                 f"(up to {fs['left_out_imu_max_s']:.1f} s of it; frames.csv)"
             )
         if m.get("scale_by_piece"):

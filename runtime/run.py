@@ -341,9 +341,9 @@ def _status_counts(frames: tuple[list[str], np.ndarray]) -> dict:
 
 
 def _from_start(seq, frames: tuple[list[str], np.ndarray], ts: np.ndarray, T: np.ndarray) -> dict | None:
-    """ATE of the frames from the start on, without those kept from before it and posed by the IMU alone
-    (``imu_backfill``: up to ``dynamic_init.backfill_s`` of dead reckoning, which can dominate a run's ATE); None
-    when there are none or no ground truth."""
+    """ATE of the frames from the start on, without those kept from before it, or from before a restart's window,
+    and posed by the IMU alone (``imu_backfill``: up to ``dynamic_init.backfill_s`` of dead reckoning, which can
+    dominate a run's ATE); None when there are none or no ground truth."""
     from runtime import eval as ev
 
     status, imu_s = frames

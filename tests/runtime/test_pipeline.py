@@ -265,7 +265,7 @@ def test_the_summary_says_how_the_run_went():
     }
     assert _story(m) == (
         "  started (hover) 1.10 s in; restarted at 4.10 s (after a start turning in place); restarted at 9.15 s "
-        "(after a loss with tracks in view); 165 frames before a start posed by the IMU alone (up to 8.2 s); "
+        "(after a loss with tracks in view); 165 frames before a (re)start posed by the IMU alone (up to 8.2 s); "
         "12 frames coasting on the IMU; 1 relocalisation(s); 2 segments (reset after a divergence or an IMU gap)"
     )
     assert _story({"initialisation": None}) is None

@@ -151,8 +151,11 @@ def plot_top_view(
     gt_ts: np.ndarray | None,
     gt_T: np.ndarray | None,
     title: str = "",
+    imu_only: np.ndarray | None = None,
 ) -> Path:
-    """Top view (x-y) of the estimate (SE(3)-aligned to the ground truth when given) and the ground truth."""
+    """Top view (x-y) of the estimate (SE(3)-aligned to the ground truth when given) and the ground truth;
+    ``imu_only`` (N,) bool marks the poses that rest on the IMU alone (``frames.csv``: coasting, no image, before a
+    start), drawn as orange dots."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -172,6 +175,13 @@ def plot_top_view(
             log.warning("plot: no alignment (%s)", e)
     ax.plot(est_p[:, 0], est_p[:, 1], "-", color="tab:red", lw=1.0, label=label)
     ax.plot(est_p[:1, 0], est_p[:1, 1], "o", color="tab:red", ms=4)
+    if imu_only is not None:
+        imu_only = np.asarray(imu_only, dtype=bool)
+        if imu_only.shape != (len(est_p),):
+            raise ValueError(f"imu_only has shape {imu_only.shape}, the estimate {len(est_p)} poses")
+        if imu_only.any():
+            n = int(imu_only.sum())
+            ax.plot(*est_p[imu_only, :2].T, ".", color="tab:orange", ms=3, label=f"IMU alone ({n} poses)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

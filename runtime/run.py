@@ -3,7 +3,8 @@
 Outputs in ``out_dir``: ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initialisation; see
 :meth:`runtime.slam.SlamSystem.trajectory`), ``frames.csv`` (each of those poses' status and the seconds it rests on
 the IMU alone: :func:`runtime.trajectory.frame_status`), ``keyframes.txt``, ``sparse_map.ply``, ``metrics.json``,
-``trajectory_top.png`` and, with ``viz=rerun``, ``slam.rrd``. With a dense configuration
+``trajectory_top.png`` (the top view, its poses on the IMU alone in orange) and, with ``viz=rerun``,
+``slam.rrd``. With a dense configuration
 (:mod:`runtime.dense`) also ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics.
 
 The earlier run's outputs in ``out_dir`` are removed first and ``metrics.json`` is written at once as a stub
@@ -30,7 +31,7 @@ from runtime.image_check import ImageCheck
 from runtime.live import LiveSlam
 from runtime.outputs import atomic_text, atomic_write, prepare_run_dir
 from runtime.slam import SlamConfig, SlamSystem
-from runtime.trajectory import frame_status
+from runtime.trajectory import IMU_ONLY, frame_status
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +141,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
             why += "; no events were logged: check the camera-IMU time overlap"
         metrics["error"] = f"never initialised ({why})"
         log.error("never initialised: no trajectory (%s)", why)
-    metrics.update(_evaluate(seq, ts, T, out, plot))
+    metrics.update(_evaluate(seq, ts, T, out, plot, np.isin(frames[0], IMU_ONLY) if len(ts) else None))
     if (fs := _from_start(seq, frames, ts, T)) is not None:
         metrics["from_start"] = fs
     if plot and mapper is not None and mapper.dense_map is not None:
@@ -393,14 +394,18 @@ def _segments(system: SlamSystem, seq, ts: np.ndarray, T: np.ndarray, out: Path)
     return out_list
 
 
-def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict:
-    """Trajectory metrics against the sequence's ground truth (when it has one) and the top-view plot."""
+def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool, imu_only: np.ndarray | None = None) -> dict:
+    """Trajectory metrics against the sequence's ground truth (when it has one) and the top-view plot (``imu_only``:
+    the poses resting on the IMU alone, marked in it)."""
     from runtime import eval as ev
 
     name = Path(str(seq.root)).name
     if seq.gt is None or len(ts) < 2:
         if plot and len(ts) >= 2:
-            atomic_write(out / "trajectory_top.png", lambda p: ev.plot_top_view(p, ts, T, None, None, title=name))
+            atomic_write(
+                out / "trajectory_top.png",
+                lambda p: ev.plot_top_view(p, ts, T, None, None, title=name, imu_only=imu_only),
+            )
         return {}
     res = {}
     try:
@@ -408,7 +413,7 @@ def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool) -> dict
         if plot:
             atomic_write(
                 out / "trajectory_top.png",
-                lambda p: ev.plot_top_view(p, ts, T, seq.gt.ts, seq.gt.T_w_b, title=name),
+                lambda p: ev.plot_top_view(p, ts, T, seq.gt.ts, seq.gt.T_w_b, title=name, imu_only=imu_only),
             )
     except Exception as e:  # noqa: BLE001 - evaluation must not lose the run's outputs
         res["eval_error"] = f"{type(e).__name__}: {e}"

@@ -129,3 +129,24 @@ def test_a_segment_whose_score_fails_keeps_the_others_and_says_why(monkeypatch, 
 
 def ns_s(ns):
     return np.asarray(ns, np.float64) * 1e-9
+
+
+def test_top_view_marks_the_poses_on_the_imu_alone(tmp_path):
+    """The poses that ``imu_only`` marks are drawn in orange (tab:orange pixels appear only with the mask, and more
+    of them for more marked poses); a mask of another length is refused."""
+    import matplotlib.image as mpimg
+
+    ts, T = _gt(400)
+
+    def orange(mask, name):
+        img = mpimg.imread(ev.plot_top_view(tmp_path / name, ts, T, ts, T, imu_only=mask))[..., :3]
+        return int((np.abs(img - np.array([255, 127, 14]) / 255).max(-1) < 0.08).sum())
+
+    none = np.zeros(len(ts), bool)
+    some, more = none.copy(), none.copy()
+    some[100:140] = True
+    more[100:300] = True
+    assert orange(None, "a.png") == 0 and orange(none, "b.png") == 0
+    assert 0 < orange(some, "c.png") < orange(more, "d.png")
+    with pytest.raises(ValueError, match="imu_only"):
+        ev.plot_top_view(tmp_path / "e.png", ts, T, ts, T, imu_only=none[:-1])

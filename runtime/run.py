@@ -4,8 +4,8 @@ Outputs in ``out_dir``: ``trajectory.txt`` (TUM, ``T_w_b`` per frame after initi
 :meth:`runtime.slam.SlamSystem.trajectory`), ``frames.csv`` (each of those poses' status and the seconds it rests on
 the IMU alone: :func:`runtime.trajectory.frame_status`), ``keyframes.txt``, ``sparse_map.ply``, ``metrics.json``,
 ``trajectory_top.png`` (the top view, its poses on the IMU alone in orange) and, with ``viz=rerun``,
-``slam.rrd``. With a dense configuration
-(:mod:`runtime.dense`) also ``dense_map.ply``, ``keyframe_depth/`` and the dense metrics.
+``slam.rrd``. With a dense configuration (:mod:`runtime.dense`) also ``dense_map.ply``, ``keyframe_depth/`` and the
+dense metrics.
 
 The earlier run's outputs in ``out_dir`` are removed first and ``metrics.json`` is written at once as a stub
 with ``"complete": false`` (:mod:`runtime.outputs`); the files are written atomically. SIGINT (Ctrl-C) or

@@ -141,7 +141,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
             why += "; no events were logged: check the camera-IMU time overlap"
         metrics["error"] = f"never initialised ({why})"
         log.error("never initialised: no trajectory (%s)", why)
-    metrics.update(_evaluate(seq, ts, T, out, plot, np.isin(frames[0], IMU_ONLY) if len(ts) else None))
+    metrics.update(_evaluate(seq, ts, T, out, plot, np.isin(frames[0], IMU_ONLY)))
     if (fs := _from_start(seq, frames, ts, T)) is not None:
         metrics["from_start"] = fs
     if plot and mapper is not None and mapper.dense_map is not None:

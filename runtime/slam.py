@@ -86,10 +86,10 @@ class SlamConfig:
     still_gyro_rad_s: float = 0.02  # |mean gyro - bias| bound for rest
     still_accel_m_s2: float = 0.3  # | |mean f| - g | and block-mean spread bound for rest
     lost_min_landmarks: int = 6  # fewer tracked landmarks (once as many were tracked): visual tracking lost
-    # a loss with this many tracks in view: the estimate disagrees with a textured view (a wrong start's scale on
-    # the realistic ``handheld`` seed 115: 176 tracks); healthy runs lost tracking with 4-62 in view, or with more
-    # just after a start, regained within 0.2 s, before a restart's window can fill (runtime.start.try_restart)
-    # two thirds of features.max_features (180); above max_features it never acts
+    # a loss with this many tracks in view (two thirds of features.max_features; above it, never): the estimate
+    # disagrees with a textured view (a wrong start's scale on the realistic ``handheld`` seed 115: 176 tracks);
+    # healthy runs lost tracking with 4-62 in view, or with more just after a start, regained within 0.2 s, before
+    # a restart's window can fill (runtime.start.try_restart)
     restart_lost_min_tracks: int = 120  # tracks in view at a loss of tracking that ask for an in-motion restart
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)

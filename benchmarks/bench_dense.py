@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_slam import apply_override, make_config
-from benchmarks.common import REPO, slam_machine, write_json
+from benchmarks.common import REPO, resumable_rows, slam_machine, write_json
 from runtime.dense import DenseConfig
 from runtime.diagnostics.oracle_depth import oracle_depth_source
 from runtime.io.euroc import read_euroc
@@ -263,21 +263,8 @@ def paired(rows: list[dict], preset: str, mode: str, ref: str) -> dict:
     }
 
 
-def resumable_rows(path: Path, args: dict, machine: dict) -> dict[tuple[str, int, str], dict]:
-    """Rows of an earlier invocation's ``bench_dense.json`` by ``(preset, seed, mode)``; {} when there is none.
-
-    Raises:
-        ValueError: it was written with other arguments or on another CPU (runs are chaotic across CPUs).
-    """
-    if not path.exists():
-        return {}
-    old = json.loads(path.read_text())
-    if old.get("args") != json.loads(json.dumps(args)):
-        raise ValueError(f"{path} was written with other arguments ({old.get('args')}): another --out, or no --resume")
-    cpu = old.get("machine", {}).get("cpu")
-    if cpu != machine["cpu"]:
-        raise ValueError(f"{path} was written on another CPU ({cpu}): runs differ between CPUs")
-    return {(r["preset"], int(r["seed"]), r["mode"]): r for r in old.get("rows", [])}
+def _row_key(row: dict) -> tuple[str, int, str]:
+    return row["preset"], int(row["seed"]), row["mode"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -330,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     machine = slam_machine(data="synthetic (sim/)")
-    done = resumable_rows(out / "bench_dense.json", run_args, machine) if args.resume else {}
+    done = resumable_rows(out / "bench_dense.json", run_args, machine, _row_key) if args.resume else {}
     rows = []
     res = {
         "machine": machine,

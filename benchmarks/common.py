@@ -179,6 +179,26 @@ def write_json(path: str | Path, obj: dict) -> Path:
     return path
 
 
+def resumable_rows(
+    path: Path, args: dict, machine: dict, key: Callable[[dict], tuple], rows: str = "rows"
+) -> dict[tuple, dict]:
+    """The list ``rows`` of an earlier invocation's result file ``path`` by ``key(row)``, for ``--resume``; {} when
+    there is none.
+
+    Raises:
+        ValueError: it was written with other arguments or on another CPU (runs are chaotic across CPUs).
+    """
+    if not path.exists():
+        return {}
+    old = json.loads(path.read_text())
+    if old.get("args") != json.loads(json.dumps(args)):
+        raise ValueError(f"{path} was written with other arguments ({old.get('args')}): another --out, or no --resume")
+    cpu = old.get("machine", {}).get("cpu")
+    if cpu != machine["cpu"]:
+        raise ValueError(f"{path} was written on another CPU ({cpu}): runs differ between CPUs")
+    return {key(r): r for r in old.get(rows, [])}
+
+
 def markdown_table(headers: list[str], rows: list[list]) -> str:
     """A markdown table; floats are printed with 4 significant digits, None as ``-``."""
 

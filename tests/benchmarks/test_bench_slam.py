@@ -1,0 +1,82 @@
+"""benchmarks/bench_slam.py at a tiny size: the issue's bars, the JSON after every run, --resume, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks import bench_slam
+
+
+def _row(preset: str, seed: int, **kw) -> dict:
+    row = dict(preset=preset, seed=seed, ate_se3_rmse_m=0.02, path_length_m=10.0, posed_frac=1.0, fps=30.0)
+    return {**row, "init_after_s": 1.0, **kw}
+
+
+def test_bars_hold_a_preset_to_every_run_and_count_the_mh05_runs_at_the_bar():
+    rows = [
+        _row("flight", 0),
+        _row("flight", 1, ate_se3_rmse_m=0.09),  # 0.9 % of the path: under the bar
+        _row("whitewall", 0, ate_se3_rmse_m=0.11),  # 1.1 %
+        _row("handheld", 0, posed_frac=0.99),  # a frame without a pose
+        _row("textured", 0, fps=19.0),  # too slow
+        _row("mh05", 0, ate_se3_rmse_m=0.049),
+        _row("mh05", 1, ate_se3_rmse_m=0.051),
+        _row("mh05", 2, init_after_s=None),  # never started
+        _row("mh05_still2", 0, posed_frac=0.97),
+    ]
+    b = bench_slam.bars(rows)
+    assert b["flight"]["met"] and b["flight"]["pct_path_max"] == pytest.approx(0.9)
+    assert not b["whitewall"]["met"] and b["whitewall"]["seeds_missed"] == [0]
+    assert not b["handheld"]["met"] and b["handheld"]["seeds_missed"] == [0]
+    assert not b["textured"]["met"] and b["textured"]["seeds_missed"] == [] and b["textured"]["fps_min"] == 19.0
+    assert (b["mh05"]["runs_met"], b["mh05"]["runs"], b["mh05"]["seeds_missed"]) == (1, 3, [1, 2])
+    assert not b["mh05"]["met"] and b["mh05_still2"]["met"]
+
+
+def _argv(tmp_path, *extra: str) -> list[str]:
+    return [
+        "--presets", "textured", "--seeds", "0", "1", "--duration", "6", "--mh05-runs",
+        "--set", "intrinsics.refine=false",
+        "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"), *extra,
+    ]  # fmt: skip
+
+
+def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missing_ones(tmp_path, monkeypatch):
+    argv = _argv(tmp_path)
+    real, calls = bench_slam.run_sequence, []
+
+    def interrupted(seq, out, *a, **kw):  # the second run is stopped by the user
+        calls.append(out.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(seq, out, *a, **kw)
+
+    monkeypatch.setattr(bench_slam, "run_sequence", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        bench_slam.main(argv)
+    path = tmp_path / "out" / "bench_slam.json"
+    part = json.loads(path.read_text())
+    assert part["complete"] is False and [r["seed"] for r in part["runs"]] == [0]
+    run = json.loads((tmp_path / "out" / "textured_s0" / "metrics.json").read_text())
+    assert part["runs"][0]["ate_sim3_rmse_m"] == pytest.approx(run["ate_sim3_rmse_m"])
+    assert run["config"]["intrinsics"]["refine"] is False  # --set reaches the run
+    with pytest.raises(ValueError, match="other arguments"):  # a resume must not mix settings
+        bench_slam.main([*argv, "--resume", "--set", "backend.window_size=6"])
+    calls.clear()
+    assert bench_slam.main([*argv, "--resume"]) == 0
+    assert calls == ["textured_s1"]  # seed 0 was kept, only seed 1 ran
+    res = json.loads(path.read_text())
+    assert res["complete"] is True and [r["seed"] for r in res["runs"]] == [0, 1]
+    assert res["runs"][0] == part["runs"][0] and "resume" not in res["args"]
+    assert res["bars"]["textured"]["runs"] == 2 and res["summary"]["textured"]["runs"] == 2
+    assert res["summary"]["textured"]["ate_sim3_rmse_m_max"] >= res["summary"]["textured"]["ate_sim3_rmse_m_mean"]
+
+
+def test_an_unknown_preset_or_setting_is_refused_before_anything_is_rendered(tmp_path):
+    with pytest.raises(SystemExit, match="unknown preset"):
+        bench_slam.main(_argv(tmp_path, "--presets", "texturd"))
+    with pytest.raises(ValueError, match="no_such_key"):
+        bench_slam.main(_argv(tmp_path, "--set", "backend.no_such_key=1"))
+    assert not (tmp_path / "data").exists() and not (tmp_path / "out").exists()

@@ -113,14 +113,16 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
         from runtime.run import run_sequence
 
         print(f"running dit-slam dense=true on {seq_dir} into {slam_out} ...", flush=True)
-        run_sequence(seq, slam_out, dense=DenseConfig(), progress=False, plot=False)
+        dense = DenseConfig(map=DenseMapConfig(voxel=args.map_voxel))
+        run_sequence(seq, slam_out, dense=dense, progress=False, plot=False)
     net = DepthNetwork(args.model or default_model_dir())
     mapping = NetworkMapping.fit(seq.camera.width, seq.camera.height, net.width, net.height)
     net_cam = mapping.camera(seq.camera.pinhole())
     R, t, ate = _se3_alignment(slam_out / "trajectory.txt", seq.gt)
     A = make_T(R, t)
     kts, kT = read_tum(slam_out / "keyframes.txt")
-    gt_pts, ref_map, t_fuse = [], VoxelMap(DenseMapConfig().voxel), 0.0
+    mcfg = DenseMapConfig(voxel=args.map_voxel)
+    gt_pts, ref_map, t_fuse = [], VoxelMap(mcfg.voxel), 0.0
     ref_tsdf, t_tsdf = TsdfVolume.from_config(DenseMapConfig()), 0.0
     for j, ts in enumerate(kts):
         i = int(np.argmin(np.abs(seq.frame_ts - ts)))
@@ -129,7 +131,7 @@ def eval_synthetic(seq_dir: Path, slam_out: Path, args) -> dict:
         p, _ = backproject(g, net_cam, g > 0)
         gt_pts.append(p @ T_w_c[:3, :3].T + T_w_c[:3, 3])
         t0 = time.perf_counter()
-        ref_map.integrate(j, g, A @ kT[j] @ seq.T_b_c, net_cam, cfg=DenseMapConfig())
+        ref_map.integrate(j, g, A @ kT[j] @ seq.T_b_c, net_cam, cfg=mcfg)
         t1 = time.perf_counter()
         ref_tsdf.integrate(j, g, A @ kT[j] @ seq.T_b_c, net_cam, cfg=DenseMapConfig())
         t_fuse, t_tsdf = t_fuse + t1 - t0, t_tsdf + time.perf_counter() - t1
@@ -177,11 +179,11 @@ def eval_real(folder: Path, args) -> dict:
 
     frames = RgbdFolder(folder, args.frames)
     net = DepthNetwork(args.model or default_model_dir())
-    cfg = DenseMapConfig()
+    cfg = DenseMapConfig(voxel=args.map_voxel)
     maps = {k: VoxelMap(cfg.voxel) for k in ("network", "interp", "gt")}
     maps["network_unweighted"] = VoxelMap(cfg.voxel, min_uncertainty=1e3)  # every B clamped to 1 km: equal weights
     maps["network_unfiltered"] = VoxelMap(cfg.voxel)
-    no_filter = DenseMapConfig(max_uncertainty=None, max_rel_uncertainty=None)
+    no_filter = DenseMapConfig(max_uncertainty=None, max_rel_uncertainty=None, voxel=args.map_voxel)
     tsdfs = {k: TsdfVolume.from_config(cfg) for k in ("network", "interp", "gt")}
     tsdfs["network_unweighted"] = TsdfVolume(cfg.tsdf_voxel, cfg.tsdf_trunc, min_uncertainty=1e3)
     t_tsdf, gt_pts = 0.0, []
@@ -254,6 +256,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=None, help="first N frames of a real folder (default: all)")
     ap.add_argument("--threshold", type=float, default=0.05, help="distance of accuracy / completeness [m]")
     ap.add_argument("--gt-voxel", type=float, default=0.02, help="voxel of the ground-truth cloud [m]")
+    ap.add_argument(
+        "--map-voxel",
+        type=float,
+        default=DenseMapConfig().voxel,
+        help="voxel of the fused maps made here [m] (a --slam-out's map has its run's dense_settings.map.voxel)",
+    )
     ap.add_argument("--mesh-spacing", type=float, default=0.01, help="spacing of the points sampled on a mesh [m]")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "dense_map.json"))
     args = ap.parse_args(argv)
@@ -276,7 +284,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {
         "threshold_m": args.threshold,
         "gt_voxel_m": args.gt_voxel,
-        "map_voxel_m": DenseMapConfig().voxel,
+        "map_voxel_m": args.map_voxel,
         "tsdf_voxel_m": DenseMapConfig().tsdf_voxel,
         "tsdf_trunc_m": DenseMapConfig().tsdf_trunc,
         "mesh_spacing_m": args.mesh_spacing,

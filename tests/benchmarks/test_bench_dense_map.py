@@ -44,6 +44,17 @@ def test_real_folder_true_depth_row_is_exact(tmp_path, capsys):
     assert "| true depth at network resolution (upper bound) |" in capsys.readouterr().out
 
 
+def test_map_voxel_sets_the_fused_maps_voxel(tmp_path):
+    folder = _rgbd_folder(tmp_path / "wall")
+    rows = {}
+    for v in (0.02, 0.08):
+        res = bench_dense_map.main(["--seq", str(folder), "--map-voxel", str(v), "--out", str(tmp_path / f"{v}.json")])
+        assert res["map_voxel_m"] == v
+        rows[v] = res["sequences"]["wall"]["rows"]["true depth at network resolution (upper bound)"]
+    assert rows[0.08]["n_map"] < rows[0.02]["n_map"] / 8  # a plane: (0.08 / 0.02)^2 = 16 times fewer voxels
+    assert rows[0.08]["accuracy"] == 1.0  # the wall's points stay on the wall
+
+
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory):
     sim_euroc = pytest.importorskip("sim.euroc")

@@ -1,4 +1,5 @@
-"""Fixtures of the benchmark smoke tests: a tiny stand-in model (64x64) and one synthetic validation frame."""
+"""Fixtures of the benchmark smoke tests: a tiny stand-in model (64x64), one synthetic validation frame, and a
+user's ^C in the middle of a benchmark's runs."""
 
 import pytest
 import torch
@@ -31,3 +32,23 @@ def standin_args(model_dir, data) -> list[str]:
         "--threads",
         "1",
     ]
+
+
+@pytest.fixture
+def interrupt_second_run(monkeypatch):
+    """``patch(module)``: the second call of ``module.run_sequence`` is stopped by a KeyboardInterrupt (a user's
+    ^C); returns the list of the output folder names it is called with (clear it to count again)."""
+
+    def patch(module) -> list[str]:
+        real, calls = module.run_sequence, []
+
+        def interrupted(seq, out, *a, **kw):
+            calls.append(out.name)
+            if len(calls) == 2:
+                raise KeyboardInterrupt
+            return real(seq, out, *a, **kw)
+
+        monkeypatch.setattr(module, "run_sequence", interrupted)
+        return calls
+
+    return patch

@@ -46,17 +46,9 @@ def test_dense_overrides_leave_the_mode_its_residuals_and_parse_numbers():
     assert not net.use_consistency and net.start_after_s == 5.0 and "dense_eq13" not in bench_dense.GROUND_TRUTH_MODES
 
 
-def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missing_ones(tmp_path, monkeypatch):
+def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missing_ones(tmp_path, interrupt_second_run):
     argv = _argv(tmp_path, "--seeds", "0", "1")
-    real, calls = bench_dense.run_sequence, []
-
-    def interrupted(seq, out, *a, **kw):  # the second run is stopped by the user
-        calls.append(out.name)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(seq, out, *a, **kw)
-
-    monkeypatch.setattr(bench_dense, "run_sequence", interrupted)
+    calls = interrupt_second_run(bench_dense)  # the second run is stopped by the user
     with pytest.raises(KeyboardInterrupt):
         bench_dense.main(argv)
     path = tmp_path / "out" / "bench_dense.json"

@@ -43,17 +43,9 @@ def _argv(tmp_path, *extra: str) -> list[str]:
     ]  # fmt: skip
 
 
-def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missing_ones(tmp_path, monkeypatch):
+def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missing_ones(tmp_path, interrupt_second_run):
     argv = _argv(tmp_path)
-    real, calls = bench_slam.run_sequence, []
-
-    def interrupted(seq, out, *a, **kw):  # the second run is stopped by the user
-        calls.append(out.name)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(seq, out, *a, **kw)
-
-    monkeypatch.setattr(bench_slam, "run_sequence", interrupted)
+    calls = interrupt_second_run(bench_slam)  # the second run is stopped by the user
     with pytest.raises(KeyboardInterrupt):
         bench_slam.main(argv)
     path = tmp_path / "out" / "bench_slam.json"

@@ -105,6 +105,12 @@ def run_one(root: Path, cfg: SlamConfig, out: Path) -> dict:
     return m
 
 
+def _pct_path(row: dict) -> float:
+    """A run's SE(3) ATE in % of its path length (nan without either)."""
+    ate, path = row.get("ate_se3_rmse_m"), row.get("path_length_m")
+    return 100 * ate / path if ate is not None and path else float("nan")
+
+
 def fmt_table(rows: list[dict]) -> str:
     head = (
         f"{'sequence':14s} {'seed':>4s} {'ATE SE3 m':>10s} {'ATE Sim3 m':>10s} {'% path':>7s} {'posed':>6s} "
@@ -113,7 +119,7 @@ def fmt_table(rows: list[dict]) -> str:
     lines = [head, "-" * len(head)]
     nan = float("nan")
     for r in rows:
-        pct = 100 * r.get("ate_se3_rmse_m", nan) / r["path_length_m"] if r.get("path_length_m") else nan
+        pct = _pct_path(r)
         init = f"{r['init_method'] or '-'}@{r['init_after_s']:.1f}s" if r.get("init_after_s") is not None else "never"
         lines.append(
             f"{r['preset']:14s} {r['seed']:>4d} {r.get('ate_se3_rmse_m', nan):10.4f} "
@@ -193,9 +199,7 @@ def summary(rows: list[dict]) -> dict:
             "never_initialised": len(rs) - len(start),
             "init_after_s_max": max(start) if start else None,
             "restarts_total": int(sum(r.get("restarts", 0) for r in rs)),
-            "ate_pct_path_max": float(
-                np.nanmax([100 * r.get("ate_se3_rmse_m", np.nan) / r.get("path_length_m", np.nan) for r in rs])
-            ),
+            "ate_pct_path_max": float(np.nanmax([_pct_path(r) for r in rs])),
             "posed_frac_min": float(np.min([r["posed_frac"] for r in rs])),
             "tracking_losses_total": int(sum(r["tracking_losses"] for r in rs)),
             "rpe_trans_rmse_m_mean": float(np.nanmean([r.get("rpe_trans_rmse_m", np.nan) for r in rs])),
@@ -245,7 +249,7 @@ def bars(rows: list[dict]) -> dict:
                 "met": all(ok),
             }
             continue
-        pct = [100 * a / r["path_length_m"] if r.get("path_length_m") else nan for r, a in zip(rs, ate, strict=True)]
+        pct = [_pct_path(r) for r in rs]
         ok = [p <= PRESET_MAX_PCT_PATH and r["posed_frac"] >= 1.0 for r, p in zip(rs, pct, strict=True)]
         fps_min = float(min(r["fps"] for r in rs))
         out[fam] = {

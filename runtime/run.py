@@ -400,21 +400,22 @@ def _evaluate(seq, ts: np.ndarray, T: np.ndarray, out: Path, plot: bool, imu_onl
     from runtime import eval as ev
 
     name = Path(str(seq.root)).name
+
+    def top_view(gt_ts=None, gt_T=None) -> None:
+        atomic_write(
+            out / "trajectory_top.png",
+            lambda p: ev.plot_top_view(p, ts, T, gt_ts, gt_T, title=name, imu_only=imu_only),
+        )
+
     if seq.gt is None or len(ts) < 2:
         if plot and len(ts) >= 2:
-            atomic_write(
-                out / "trajectory_top.png",
-                lambda p: ev.plot_top_view(p, ts, T, None, None, title=name, imu_only=imu_only),
-            )
+            top_view()
         return {}
     res = {}
     try:
         res.update(ev.trajectory_metrics(ts, T, seq.gt.ts, seq.gt.T_w_b))
         if plot:
-            atomic_write(
-                out / "trajectory_top.png",
-                lambda p: ev.plot_top_view(p, ts, T, seq.gt.ts, seq.gt.T_w_b, title=name, imu_only=imu_only),
-            )
+            top_view(seq.gt.ts, seq.gt.T_w_b)
     except Exception as e:  # noqa: BLE001 - evaluation must not lose the run's outputs
         res["eval_error"] = f"{type(e).__name__}: {e}"
         log.error("evaluation failed: %s", e)

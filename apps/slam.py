@@ -150,9 +150,11 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             f"  INTERRUPTED ({m.get('interrupted_by')}) after {m['frames_processed']} of {m['frames']} frames: "
             'the outputs hold what was processed ("complete": false in metrics.json)'
         )
+    rss = m.get("peak_rss_mb")
     lines.append(
         f"  frames {m.get('frames_processed', m['frames'])} (with pose {m['frames_with_pose']}), keyframes "
         f"{m['keyframes']}, map points {m['map_points']}, {m['fps']:.1f} frames/s"
+        + (f", peak memory {rss:.0f} MiB" if rss else "")
     )
     story = _story(m)
     if story:
@@ -209,6 +211,13 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             else ""
         )
         lines.append(f"  dense map: {m.get('dense_map_points', 0)} points{mesh}; wrote {out}/{{{dense_files}}}")
+        behind = m.get("dense_later_jobs_at_last_frame")
+        if behind:
+            lines.append(
+                f"  the network thread was {behind} jobs of later work behind at the last frame (map codes, depth "
+                f"metrics, fusion; at most {m['dense_later_jobs_peak']}): "
+                f"{m['dense_later_work_after_last_frame_s']:.1f} s to finish them, counted in frames/s"
+            )
     from runtime.outputs import RUN_OUTPUTS
 
     lines.append(f"  wrote {out}/{{{', '.join(n for n in RUN_OUTPUTS if (out / n).exists())}}}")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import sys
 import threading
 import time
 from collections import Counter, deque
@@ -77,6 +78,7 @@ def run_sequence(
 
 def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth_source, probe, run_id, stop):
     n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
+    rss_scope = "run" if _reset_peak_rss() else "process"
     net = _load_network(model_dir) if dense is not None else None  # a bad model fails before the first pass
     _preload()
     t_start, cpu_start = time.perf_counter(), time.process_time()
@@ -89,9 +91,11 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
     images = ImageCheck()
     done = _run_frames(live, seq, n, recorder, progress, stop, images, read=cache.take)
     cache.clear()
+    t_drain = time.perf_counter()
     if mapper is not None:
         mapper.drain()  # the network thread's map codes, depth metrics and fusion of the frames run count in wall_s
     wall, cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
+    drain_s = time.perf_counter() - t_drain
     frames = frame_status(system.records)  # each pose's status and seconds on the IMU alone
     ts, T, pts = _write_trajectory_and_map(system, out, frames)
     metrics = {
@@ -108,6 +112,8 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         "fps": done / wall if wall > 0 else float("nan"),
         "cpu_s": cpu,  # CPU time of the process (all threads): robust to other jobs sharing the machine
         "cpu_ms_per_frame": 1e3 * cpu / max(done, 1),
+        "peak_rss_mb": _peak_rss_mb(),  # the largest resident memory up to here (its scope: peak_rss_scope)
+        "peak_rss_scope": rss_scope,  # "run": since this run began; "process": of the whole process
         "image_warnings": images.warnings,
         "timing_ms_per_frame": system.timing_summary(),
         "keyframe_reasons": dict(system.kf_reasons),
@@ -135,6 +141,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
             "optimisation": tm.get("optimize", 0.0) - tm.get("dense_factors", 0.0),
             "outputs_s": time.perf_counter() - t0,
         }
+        metrics["dense_later_work_after_last_frame_s"] = drain_s  # inside wall_s: frames/s pays for it
     if len(ts) == 0 and done == n:
         why = system.initializer.last_reason or "no rest and no motion found"
         if not system.events:
@@ -193,6 +200,27 @@ def _make_recorder(viz: str | None, out: Path, seq):
     from runtime.viz import RerunRecorder
 
     return RerunRecorder(out / "slam.rrd", seq.camera, seq.T_b_c)
+
+
+def _reset_peak_rss() -> bool:
+    """Set the process's peak resident memory back to its current value (Linux: ``/proc/self/clear_refs``), so
+    that ``peak_rss_mb`` is this run's peak, not that of earlier work in the same process (a benchmark, the
+    tests); False where that cannot be done."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True
+
+
+def _peak_rss_mb() -> float | None:
+    """The process's peak resident memory [MiB] (``getrusage``; None where there is none, as on Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024
 
 
 def _preload() -> None:

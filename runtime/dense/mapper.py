@@ -140,6 +140,9 @@ class DenseMapper:
         probe: optional :class:`runtime.dense.linearized.ApproxErrorProbe`, called after each optimisation.
     """
 
+    later_peak: int = 0  # most later-work jobs waiting at once on the network thread (metrics.json)
+    later_at_drain: int | None = None  # later-work jobs waiting when drain() was called (after the last frame)
+
     def __init__(
         self,
         net,
@@ -224,7 +227,10 @@ class DenseMapper:
         if self.cfg.background:
             if self._pool is None:
                 self._pool = PriorityWorker("dense-network")
-            return self._pool.submit(fn, *args, urgent=urgent)
+            job = self._pool.submit(fn, *args, urgent=urgent)
+            if not urgent:
+                self.later_peak = max(self.later_peak, self._pool.pending()[1])
+            return job
         job = Future()
         try:
             job.set_result(fn(*args))
@@ -585,9 +591,11 @@ class DenseMapper:
         }
 
     def drain(self) -> None:
-        """Wait until the network thread has run every job submitted so far (its later work included)."""
+        """Wait until the network thread has run every job submitted so far (its later work included); the
+        later-work jobs that were still waiting go into the metrics (``dense_later_jobs_at_last_frame``)."""
         if self._pool is not None:
-            self._submit(_nothing, urgent=False).result()
+            self.later_at_drain = self._pool.pending()[1]
+            self._pool.submit(_nothing, urgent=False).result()  # a marker, not counted as later work
 
     def close(self) -> None:
         """Wait for the network thread's passes and stop it (a later keyframe starts a new one)."""
@@ -608,6 +616,10 @@ class DenseMapper:
             "dense_keyframe_sparse_points": _quartiles(st.n_sparse),
             "dense_keyframes_below_min_sparse": int(sum(self._unscaled(n) for n in st.n_sparse)),
             "decoder_calls": int(self.net.decoder_calls),
+            # The network thread's later work (map codes, depth metrics, fusion of the keyframes that left the
+            # window) runs when no urgent job waits; each waiting job holds its keyframe's network state.
+            "dense_later_jobs_peak": int(self.later_peak),
+            "dense_later_jobs_at_last_frame": self.later_at_drain,
             "dense_config": dataclasses.asdict(self.cfg),
         }
         if self.probe is not None:

@@ -264,6 +264,28 @@ def test_drain_returns_once_the_later_work_queued_so_far_has_run():
     m.close()
 
 
+def test_the_later_work_backlog_goes_into_the_metrics():
+    """``dense_later_jobs_peak``: most later-work jobs waiting at once; ``dense_later_jobs_at_last_frame``: those
+    still waiting when the run drains the network thread after its last frame (known answers, the thread held)."""
+    m = DenseMapper.__new__(DenseMapper)
+    m.cfg, m._pool = DenseConfig(), None
+    gate, done = threading.Event(), []
+    m._submit(gate.wait, 10)  # urgent: holds the network thread
+    for i in range(3):
+        m._submit(done.append, i, urgent=False)
+    m._submit(done.append, "urgent")
+    assert m.later_peak == 3
+    drain = threading.Thread(target=m.drain)
+    drain.start()
+    while m.later_at_drain is None:
+        threading.Event().wait(0.01)
+    gate.set()
+    drain.join(10)
+    assert m.later_at_drain == 3 and m.later_peak == 3  # the drain's own marker is not later work
+    assert done == ["urgent", 0, 1, 2]
+    m.close()
+
+
 def test_linearized_depth_is_exact_at_its_point_and_first_order_near_it():
     class Lin:
         """Quadratic decoder D(c) = D0 + B c + 0.5 (c.c) Q."""

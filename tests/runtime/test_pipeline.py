@@ -269,3 +269,47 @@ def test_the_summary_says_how_the_run_went():
         "12 frames coasting on the IMU; 1 relocalisation(s); 2 segments (reset after a divergence or an IMU gap)"
     )
     assert _story({"initialisation": None}) is None
+
+
+def test_peak_memory_is_the_runs_own(tiny, tmp_path):
+    """``peak_rss_mb`` is the run's peak: 1 GiB held and freed by this process just before the run is not in it
+    (Linux resets the high-water mark at the run's start), yet the figure is at least the memory the process held
+    when the run began."""
+    import resource
+    import sys
+
+    if sys.platform != "linux":
+        pytest.skip("the run's own peak needs Linux's /proc/self/clear_refs")
+
+    def rss_mb() -> float:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        raise AssertionError("no VmRSS in /proc/self/status")
+
+    blob = np.ones(2**30 // 8)  # 1 GiB, touched
+    held = rss_mb()
+    del blob
+    before = rss_mb()
+    assert held - before > 900
+    m = run_sequence(read_euroc(tiny), tmp_path / "out", progress=False, plot=False, max_frames=60)
+    assert m["peak_rss_scope"] == "run"
+    assert before - 1 <= m["peak_rss_mb"] < held - 900
+    assert m["peak_rss_mb"] <= resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 + 1
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["peak_rss_mb"] == m["peak_rss_mb"]
+
+
+def test_the_summary_gives_the_peak_memory_and_the_dense_backlog_left_at_the_last_frame(tmp_path):
+    """The console summary's memory and later-work lines (known answers); no backlog line when none was left."""
+    from apps.slam import _summary
+
+    m = {"frames": 10, "frames_with_pose": 9, "keyframes": 3, "map_points": 40, "fps": 21.04, "peak_rss_mb": 812.4}
+    m |= {"dense_later_jobs_at_last_frame": 7, "dense_later_jobs_peak": 12, "dense_later_work_after_last_frame_s": 1.26}
+    text = _summary(m, tmp_path, True)
+    assert "21.0 frames/s, peak memory 812 MiB" in text
+    assert (
+        "the network thread was 7 jobs of later work behind at the last frame (map codes, depth metrics, fusion; "
+        "at most 12): 1.3 s to finish them, counted in frames/s" in text
+    )
+    m["dense_later_jobs_at_last_frame"] = 0
+    assert "later work" not in _summary(m, tmp_path, True)

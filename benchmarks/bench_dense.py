@@ -171,6 +171,8 @@ def run_row(preset: str, seed: int, mode: str, m: dict) -> dict:
         "keyframes": m["keyframes"],
         "decoder_calls": m.get("decoder_calls", 0),
         "timing_dense_ms_per_frame": m.get("timing_dense_ms_per_frame"),
+        "peak_rss_mb": m.get("peak_rss_mb"),  # the run's own peak (runtime.run resets it at each run's start)
+        "later_jobs_at_last_frame": m.get("dense_later_jobs_at_last_frame"),  # the network thread's backlog
         # dead-reckoning drift found by the relocalisation after a loss of visual tracking (whitewall)
         "reloc_drift_m": max((r["drift_m"] for r in m.get("relocalisations") or []), default=float("nan")),
     }
@@ -217,6 +219,8 @@ def fmt_table(rows: list[dict], per_run: bool = True) -> str:
                 f"{r['fps']:.1f} FPS, RMSE a/b/c/d/i {r['rmse_a']:.3f}/{r['rmse_b']:.3f}/{r['rmse_c']:.3f}/"
                 f"{r['rmse_d']:.3f}/{r['rmse_i']:.3f} m, "
                 f"decoder runs {r['decoder_calls']}, drift at relocalisation {r['reloc_drift_m']:.3f} m"
+                + (f", peak memory {r['peak_rss_mb']:.0f} MiB" if r.get("peak_rss_mb") else "")
+                + (f", {r['later_jobs_at_last_frame']} later jobs left" if r.get("later_jobs_at_last_frame") else "")
             )
     return "\n".join(lines)
 

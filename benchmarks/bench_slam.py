@@ -114,7 +114,7 @@ def _pct_path(row: dict) -> float:
 def fmt_table(rows: list[dict]) -> str:
     head = (
         f"{'sequence':14s} {'seed':>4s} {'ATE SE3 m':>10s} {'ATE Sim3 m':>10s} {'% path':>7s} {'posed':>6s} "
-        f"{'init':>12s} {'losses':>6s} {'RPE m/1s':>9s} {'FPS':>6s} {'CPU ms':>6s} {'KF':>4s}"
+        f"{'init':>12s} {'losses':>6s} {'RPE m/1s':>9s} {'FPS':>6s} {'CPU ms':>6s} {'KF':>4s} {'MiB':>5s}"
     )
     lines = [head, "-" * len(head)]
     nan = float("nan")
@@ -125,7 +125,7 @@ def fmt_table(rows: list[dict]) -> str:
             f"{r['preset']:14s} {r['seed']:>4d} {r.get('ate_se3_rmse_m', nan):10.4f} "
             f"{r.get('ate_sim3_rmse_m', nan):10.4f} {pct:7.2f} {100 * r['posed_frac']:5.1f}% {init:>12s} "
             f"{r['tracking_losses']:6d} {r.get('rpe_trans_rmse_m', nan):9.4f} {r['fps']:6.1f} "
-            f"{r['cpu_ms_per_frame']:6.1f} {r['keyframes']:4d}"
+            f"{r['cpu_ms_per_frame']:6.1f} {r['keyframes']:4d} {r.get('peak_rss_mb') or nan:5.0f}"
         )
     return "\n".join(lines)
 
@@ -166,6 +166,7 @@ def result_row(m: dict) -> dict:
     row["posed_frac"] = m["frames_with_pose"] / max(m["frames"], 1)
     row["tracking_losses"] = sum("visual tracking lost" in e[1] for e in m.get("events", []))
     row["restarts"] = len(m.get("restarts", []))
+    row["peak_rss_mb"] = m.get("peak_rss_mb")  # the run's own peak (runtime.run resets it at each run's start)
     return row
 
 

@@ -26,6 +26,7 @@ def test_slam_set_reaches_the_runs_and_the_json(tmp_path, capsys):
     assert res["machine"]["cpu"]  # runs differ between CPUs: the result names its CPU
     (row,) = res["rows"]
     assert row["mode"] == "sparse" and row["ate"] == pytest.approx(run["ate_se3_rmse_m"])
+    assert row["peak_rss_mb"] == run["peak_rss_mb"] > 0 and row["later_jobs_at_last_frame"] is None  # no network
     assert "textured   sparse" in capsys.readouterr().out
 
 

@@ -53,6 +53,7 @@ def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missi
     assert part["complete"] is False and [r["seed"] for r in part["runs"]] == [0]
     run = json.loads((tmp_path / "out" / "textured_s0" / "metrics.json").read_text())
     assert part["runs"][0]["ate_sim3_rmse_m"] == pytest.approx(run["ate_sim3_rmse_m"])
+    assert part["runs"][0]["peak_rss_mb"] == run["peak_rss_mb"] > 0  # the run's own peak memory
     assert run["config"]["intrinsics"]["refine"] is False  # --set reaches the run
     with pytest.raises(ValueError, match="other arguments"):  # a resume must not mix settings
         bench_slam.main([*argv, "--resume", "--set", "backend.window_size=6"])

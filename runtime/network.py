@@ -232,8 +232,9 @@ class DepthNetwork:
         if self.takes_fill:
             feed["fill"] = network_fill(x[0, -1])[None, None]
         outs = self._prior.run(None, feed)
+        fill = feed["fill"][0, 0] if self.takes_fill else None
         feed = dict(zip(self.feature_names, outs[1:], strict=True))
-        return KeyframeDepth(self, outs[0][0, 0], feed, cache_size=cache_size)
+        return KeyframeDepth(self, outs[0][0, 0], feed, cache_size=cache_size, fill=fill)
 
     def decode(self, codes: np.ndarray, features: dict[str, np.ndarray]) -> np.ndarray:
         """Depth [B, H, W] (metres) for codes [B, C] given a keyframe's features."""
@@ -252,6 +253,7 @@ class KeyframeDepth:
     uncertainty: np.ndarray  # (H, W) metres, > 0
     features: dict[str, np.ndarray]
     cache_size: int = 4
+    fill: np.ndarray | None = None  # (H, W) the prior's densified sparse input (a relative model's ``fill``), or None
     _depth: OrderedDict = field(default_factory=OrderedDict, repr=False)
     _jac: OrderedDict = field(default_factory=OrderedDict, repr=False)
 

@@ -631,3 +631,21 @@ def test_depth_metrics_carry_the_interpolated_input_and_the_median_as_references
     # no sparse input (a network that takes none, or no map point in view): no interpolation row
     assert m._depth_errors(provider, np.zeros(8), 0, uv, z, None, None)["interpolated"] is None
     assert m._depth_errors(provider, np.zeros(8), 0, uv, z, None, np.zeros_like(gt))["interpolated"] is None
+    # a network that took the interpolation as its fill input: its fill is the row (not interpolated again)
+    provider.kd = SimpleNamespace(fill=np.full(gt.shape, 2.5, np.float32))
+    out = m._depth_errors(provider, np.zeros(8), 0, uv, z, None, sparse_in)
+    assert out["interpolated"] == depth_metrics(provider.kd.fill, gt)
+
+
+def test_the_prior_keeps_its_fill_input_the_interpolation_of_its_sparse_points():
+    """The shipped (relative) model's prior keeps the fill it was fed: the interpolation of its sparse input, the
+    same array the depth metrics' reference row would compute again."""
+    from runtime.densify import interpolate_sparse
+
+    net = DepthNetwork(default_model_dir())
+    rng = np.random.default_rng(6)
+    sparse = np.zeros((net.height, net.width), np.float32)
+    sparse[rng.integers(0, net.height, 60), rng.integers(0, net.width, 60)] = rng.uniform(1, 3, 60)
+    kd = net.prior(rng.integers(0, 255, (net.height, net.width), dtype=np.uint8), sparse)
+    assert net.takes_fill and kd.fill.dtype == np.float32
+    np.testing.assert_array_equal(kd.fill, interpolate_sparse(sparse))

@@ -112,7 +112,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         "fps": done / wall if wall > 0 else float("nan"),
         "cpu_s": cpu,  # CPU time of the process (all threads): robust to other jobs sharing the machine
         "cpu_ms_per_frame": 1e3 * cpu / max(done, 1),
-        "peak_rss_mb": _peak_rss_mb(),  # the largest resident memory up to here (its scope: peak_rss_scope)
+        "peak_rss_mb": None,  # the largest resident memory, outputs included (set last; scope: peak_rss_scope)
         "peak_rss_scope": rss_scope,  # "run": since this run began; "process": of the whole process
         "image_warnings": images.warnings,
         "timing_ms_per_frame": system.timing_summary(),
@@ -161,6 +161,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
     if recorder is not None:
         recorder.log_final(system, ts, T, pts, dense_map=mapper.dense_map if mapper is not None else None)
         recorder.close()
+    metrics["peak_rss_mb"] = _peak_rss_mb()
     atomic_text(out / "metrics.json", json.dumps(_jsonable(metrics), indent=2))
     return metrics
 

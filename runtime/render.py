@@ -150,22 +150,29 @@ def render_points(
     u0 = np.floor(uv[idx, 0] + 0.5).astype(np.int64)  # pixel u covers [u - 0.5, u + 0.5)
     v0 = np.floor(uv[idx, 1] + 0.5).astype(np.int64)
     zi = z[idx]
+    offsets = [(du, dv) for dv in range(-radius, radius + 1) for du in range(-radius, radius + 1)]
+
+    def covered(du: int, dv: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (flat) and point numbers (into ``idx``) of the points that cover a pixel at offset (du, dv)."""
+        u, v = u0 + du, v0 + dv
+        m = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        return v[m] * W + u[m], np.nonzero(m)[0]
+
     zbuf = np.full(H * W, np.inf)
-    pix_all, pt_all = [], []
-    for dv in range(-radius, radius + 1):
-        for du in range(-radius, radius + 1):  # (2r + 1)^2 offsets, each vectorised over all points
-            u, v = u0 + du, v0 + dv
-            m = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-            pix = v[m] * W + u[m]
-            np.minimum.at(zbuf, pix, zi[m])
-            pix_all.append(pix)
-            pt_all.append(np.nonzero(m)[0])
-    index = np.full(H * W, -1, dtype=np.int64)
-    if sum(x.size for x in pix_all):  # some point lands in the image
-        pix = np.concatenate(pix_all)
-        k = np.concatenate(pt_all)
+    for du, dv in offsets:  # (2r + 1)^2 offsets, each vectorised over all points
+        pix, k = covered(du, dv)
+        np.minimum.at(zbuf, pix, zi[k])
+    # Each offset again, keeping only the points nearest at their pixel: a map's millions of points never hold
+    # all the offsets' arrays at once (the picture of a large dense map took hundreds of MB for them).
+    pix_win, k_win = [], []
+    for du, dv in offsets:
+        pix, k = covered(du, dv)
         win = zi[k] == zbuf[pix]  # this point is the nearest at this pixel
-        pix, k = pix[win], k[win]
+        pix_win.append(pix[win])
+        k_win.append(k[win])
+    index = np.full(H * W, -1, dtype=np.int64)
+    pix, k = np.concatenate(pix_win), np.concatenate(k_win)
+    if pix.size:  # some point lands in the image
         order = np.lexsort((idx[k], pix))  # by pixel, then by point index
         pix, pts = pix[order], idx[k[order]]
         first = np.r_[True, pix[1:] != pix[:-1]]  # per pixel, the lowest index among the nearest

@@ -103,6 +103,10 @@ def project_points(
     return uv, z, inside
 
 
+#: Points projected at once by :func:`render_points` (its arrays scale with this, not with the map).
+RENDER_CHUNK = 1 << 18
+
+
 def render_points(
     xyz_w: np.ndarray,
     T_w_c: np.ndarray,
@@ -145,36 +149,45 @@ def render_points(
             raise ValueError(f"rgb has shape {np.asarray(rgb).shape}, expected ({p.shape[0]}, 3) or ({p.shape[0]},)")
         col = col.astype(np.uint8)
     W, H = int(camera.width), int(camera.height)
-    uv, z, ok = project_points(p, T_w_c, camera, near)
-    idx = np.nonzero(ok)[0]
-    u0 = np.floor(uv[idx, 0] + 0.5).astype(np.int64)  # pixel u covers [u - 0.5, u + 0.5)
-    v0 = np.floor(uv[idx, 1] + 0.5).astype(np.int64)
-    zi = z[idx]
     offsets = [(du, dv) for dv in range(-radius, radius + 1) for du in range(-radius, radius + 1)]
+    # The points in chunks, each projected in both passes: the arrays scale with a chunk, not with the map (a
+    # 150 s run's dense map has 3 M points).
+    chunks = [slice(a, min(a + RENDER_CHUNK, p.shape[0])) for a in range(0, p.shape[0], RENDER_CHUNK)]
 
-    def covered(du: int, dv: int) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels (flat) and point numbers (into ``idx``) of the points that cover a pixel at offset (du, dv)."""
+    def projected(sl: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Nearest pixel ``(u0, v0)``, depth and index of each point of ``p[sl]`` that lands in the image."""
+        uv, z, ok = project_points(p[sl], T_w_c, camera, near)
+        u0 = np.floor(uv[ok, 0] + 0.5).astype(np.int64)  # pixel u covers [u - 0.5, u + 0.5)
+        v0 = np.floor(uv[ok, 1] + 0.5).astype(np.int64)
+        return u0, v0, z[ok], np.nonzero(ok)[0] + sl.start
+
+    def covered(u0: np.ndarray, v0: np.ndarray, du: int, dv: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (flat) and positions (into ``u0``) of the points that cover a pixel at offset (du, dv)."""
         u, v = u0 + du, v0 + dv
         m = (u >= 0) & (u < W) & (v >= 0) & (v < H)
         return v[m] * W + u[m], np.nonzero(m)[0]
 
     zbuf = np.full(H * W, np.inf)
-    for du, dv in offsets:  # (2r + 1)^2 offsets, each vectorised over all points
-        pix, k = covered(du, dv)
-        np.minimum.at(zbuf, pix, zi[k])
-    # Each offset again, keeping only the points nearest at their pixel: a map's millions of points never hold
-    # all the offsets' arrays at once (the picture of a large dense map took hundreds of MB for them).
-    pix_win, k_win = [], []
-    for du, dv in offsets:
-        pix, k = covered(du, dv)
-        win = zi[k] == zbuf[pix]  # this point is the nearest at this pixel
-        pix_win.append(pix[win])
-        k_win.append(k[win])
+    for sl in chunks:
+        u0, v0, zi, _ = projected(sl)
+        for du, dv in offsets:  # (2r + 1)^2 offsets, each vectorised over the chunk's points
+            pix, k = covered(u0, v0, du, dv)
+            np.minimum.at(zbuf, pix, zi[k])
+    # Again, keeping only the points nearest at their pixel (no pass holds every offset's arrays at once).
+    pix_win, pt_win = [], []
+    for sl in chunks:
+        u0, v0, zi, idx = projected(sl)
+        for du, dv in offsets:
+            pix, k = covered(u0, v0, du, dv)
+            win = zi[k] == zbuf[pix]  # this point is the nearest at this pixel
+            pix_win.append(pix[win])
+            pt_win.append(idx[k[win]])
     index = np.full(H * W, -1, dtype=np.int64)
-    pix, k = np.concatenate(pix_win), np.concatenate(k_win)
+    pix = np.concatenate(pix_win) if pix_win else np.zeros(0, np.int64)
     if pix.size:  # some point lands in the image
-        order = np.lexsort((idx[k], pix))  # by pixel, then by point index
-        pix, pts = pix[order], idx[k[order]]
+        pts = np.concatenate(pt_win)
+        order = np.lexsort((pts, pix))  # by pixel, then by point index
+        pix, pts = pix[order], pts[order]
         first = np.r_[True, pix[1:] != pix[:-1]]  # per pixel, the lowest index among the nearest
         index[pix[first]] = pts[first]
     index = index.reshape(H, W)

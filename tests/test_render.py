@@ -160,3 +160,23 @@ def test_depth_panels_share_one_colour_scale_per_row():
         depth_panels([dict(row, gt=depth[:-1])])
     with pytest.raises(ValueError, match="no rows"):
         depth_panels([])
+
+
+def test_rendering_in_chunks_gives_the_same_picture(monkeypatch):
+    """The points go through the z-buffer in chunks (``RENDER_CHUNK``): any chunk size gives the same depth,
+    colours and winning point at every pixel, ties to the lower index included (points repeated at one place)."""
+    import runtime.render as render
+
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([_plane(2.0, (0, 99), (0, 79), per_px=1), rng.uniform([-1, -1, 0.5], [1, 1, 4], (3000, 3))])
+    pts = np.concatenate([pts, pts[rng.integers(0, len(pts), 500)]])  # exact ties in depth, later indices
+    rgb = rng.integers(0, 255, (len(pts), 3), dtype=np.uint8)
+    T_w_c = make_T(so3_exp(np.array([0.05, -0.1, 0.02])), np.array([0.1, 0.0, -0.2]))
+    whole = render_points(pts, T_w_c, CAM, rgb=rgb, radius=1)
+    for chunk in (1000, 997, 7):
+        monkeypatch.setattr(render, "RENDER_CHUNK", chunk)
+        r = render_points(pts, T_w_c, CAM, rgb=rgb, radius=1)
+        np.testing.assert_array_equal(r.index, whole.index)
+        np.testing.assert_array_equal(r.depth, whole.depth)
+        np.testing.assert_array_equal(r.rgb, whole.rgb)
+    assert whole.mask.sum() > 0.8 * whole.mask.size

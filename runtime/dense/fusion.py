@@ -303,13 +303,18 @@ class VoxelMap:
         """
         n = self._n
         keep = self.n_kf[:n] >= int(min_keyframes)
-        w = self.w[:n][keep][:, None]
-        xyz = self.wp[:n][keep] / w
-        rgb = np.clip(np.rint(self.wc[:n][keep] / w), 0, 255).astype(np.uint8)
-        wn = self.wn[:n][keep].astype(np.float64)
-        norm = np.linalg.norm(wn, axis=1, keepdims=True)
-        nrm = np.where(norm > 0, wn / np.where(norm > 0, norm, 1.0), 0.0)
-        return xyz, rgb, nrm, self.n_kf[:n][keep].copy()
+        rows = slice(None) if keep.all() else keep  # a view of the rows, not a copy, when all are kept
+        w = self.w[:n][rows][:, None]
+        xyz = self.wp[:n][rows] / w
+        c = self.wc[:n][rows] / w  # float64; rounded and clipped in place (a map can hold millions of voxels)
+        rgb = np.clip(np.rint(c, out=c), 0, 255, out=c).astype(np.uint8)
+        del c
+        nrm = self.wn[:n][rows].astype(np.float64)
+        norm = np.sqrt(np.add.reduce(nrm * nrm, axis=1, keepdims=True))  # as np.linalg.norm(nrm, axis=1)
+        has = norm > 0
+        np.divide(nrm, np.where(has, norm, 1.0), out=nrm)
+        nrm[~has[:, 0]] = 0.0  # no normal: zero (+0.0)
+        return xyz, rgb, nrm, self.n_kf[:n][rows].copy()
 
 
 def write_fused_map(path: str | Path, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray, count: np.ndarray) -> Path:

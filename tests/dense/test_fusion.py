@@ -249,3 +249,30 @@ def test_voxels_are_found_again_after_the_index_merges(monkeypatch):
     keys = m.key[: len(m)]
     assert np.unique(keys).size == len(m)  # no voxel twice
     assert count[:n].min() >= 2 and count.max() == 3 and len(m) > n
+
+
+def test_the_map_points_are_the_weighted_means_of_their_voxels():
+    """``points()`` against the sums it keeps (a reference computed here from the map's rows): weighted mean
+    position and colour, unit mean normal (zero without one), keyframe counts; with and without a support filter."""
+    rng = np.random.default_rng(4)
+    cam = Camera(60.0, 60.0, 31.5, 23.5, 64, 48)
+    m = VoxelMap(0.02)
+    for i in range(12):
+        T = np.eye(4)
+        T[:3, 3] = rng.normal(size=3) * 0.05
+        d = 2 + rng.normal(size=(48, 64)).cumsum(1) * 0.01
+        d[rng.random((48, 64)) < 0.05] = 0  # holes: pixels without a normal
+        m.integrate(i, d, T, cam, rng.uniform(0.01, 0.2, (48, 64)), rng.integers(0, 255, (48, 64), dtype=np.uint8))
+    n = len(m)
+    for min_kf in (1, 3):
+        keep = m.n_kf[:n] >= min_kf
+        xyz, rgb, nrm, count = m.points(min_kf)
+        w = m.w[:n][keep][:, None]
+        np.testing.assert_array_equal(xyz, m.wp[:n][keep] / w)
+        np.testing.assert_array_equal(rgb, np.clip(np.rint(m.wc[:n][keep] / w), 0, 255).astype(np.uint8))
+        wn = m.wn[:n][keep].astype(np.float64)
+        norm = np.linalg.norm(wn, axis=1, keepdims=True)
+        np.testing.assert_array_equal(nrm, np.where(norm > 0, wn / np.where(norm > 0, norm, 1.0), 0.0))
+        np.testing.assert_array_equal(count, m.n_kf[:n][keep])
+        assert 0 < len(xyz) <= n and (len(xyz) == n) == (min_kf == 1)
+        assert np.signbit(nrm[(norm == 0)[:, 0]]).sum() == 0 and (norm == 0).any()  # zero normals are +0.0

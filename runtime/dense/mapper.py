@@ -517,12 +517,13 @@ class DenseMapper:
         sp = sparse_depth_image(uv_net, z, gt_net.shape)
         valid = gt_net[np.isfinite(gt_net) & (gt_net > 0)]
         taken = sparse_in is not None and bool((sparse_in > 0).any())
-        if taken:  # the network's own fill input when it took one: the same interpolation of the same points
-            fill = getattr(getattr(provider, "kd", None), "fill", None)
-            interpolated = fill if fill is not None else interpolate_sparse(sparse_in)
+        # The network's own fill input when it took one: the same interpolation of the same points.
+        fill = getattr(getattr(provider, "kd", None), "fill", None)
         return {
             "sparse": depth_metrics(sp, gt_net) if (sp > 0).any() and (gt_net[sp > 0] > 0).any() else None,
-            "interpolated": depth_metrics(interpolated, gt_net) if taken else None,
+            "interpolated": (
+                depth_metrics(fill if fill is not None else interpolate_sparse(sparse_in), gt_net) if taken else None
+            ),
             "median": depth_metrics(np.full(gt_net.shape, np.median(valid)), gt_net) if valid.size else None,
             "prior": depth_metrics(np.asarray(provider.exact(np.zeros_like(code)), np.float64), gt_net),
             "optimised": depth_metrics(np.asarray(provider.exact(code), np.float64), gt_net),

@@ -3,6 +3,7 @@ mapper's parts: the decoder cache, the depth sources, the code keyframes and the
 
 import json
 import threading
+import time
 from collections import defaultdict
 from concurrent.futures import Future
 from dataclasses import replace
@@ -277,7 +278,8 @@ def test_the_later_work_backlog_goes_into_the_metrics():
     assert m.later_peak == 3
     drain = threading.Thread(target=m.drain)
     drain.start()
-    while m.later_at_drain is None:
+    deadline = time.monotonic() + 10
+    while m.later_at_drain is None and time.monotonic() < deadline:  # a failing drain fails here, not hangs
         threading.Event().wait(0.01)
     gate.set()
     drain.join(10)

@@ -76,7 +76,9 @@ class DynamicInitConfig:
     # (a bias b costs as much as a velocity residual of weight * b [m/s]); 0: the bias is taken as 0 (VINS-Mono)
     min_depth_m: float = 0.2  # median depth of the scaled structure (closer: corrupt tracks or a wrong scale)
     ba_iterations: int = 15
-    hover_max_px: float = 3.0  # rotation-only fit residual below this over the window: turning in place
+    # (3.0 px refused MH_05 IMU seed 2 at 3.03 px during the take-off, and structure from motion then waited until
+    # 2.9 s; reports/ablations.md)
+    hover_max_px: float = 4.0  # rotation-only fit residual below this over the window: turning in place
     try_every_s: float = 0.1  # s between attempts
     backfill_s: float = 10.0  # frames before the start window get IMU poses this far back (every kept frame)
     refine_within_s: float = 10.0  # after a start turning in place, re-initialise in motion within this time

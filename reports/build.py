@@ -861,6 +861,9 @@ def _slam_realistic() -> list[str]:
                 _num(100 * r.get("posed_frac", float("nan")), 1),
                 init,
                 str(r.get("tracking_losses")),
+                f"{_num(r.get('rest_drift_m'), 1, 1e3)} over {r['rest_s']:.1f} s"
+                if r.get("rest_drift_m") is not None
+                else "-",
                 _num(r.get("fps"), 1),
                 _num(r.get("cpu_ms_per_frame"), 1),
             ]
@@ -880,7 +883,7 @@ def _slam_realistic() -> list[str]:
         "and on the real MH_05 excerpt completed with a vibrating IMU by `dit-sim imu` (`mh05`: real timing, "
         "starts in flight; `mh05_still2`: a 2 s still period prepended; seed = the IMU noise seed of `dit-sim imu`):",
         "",
-        _table(head + ["losses", "frames/s", "CPU ms/frame"], rows),
+        _table(head + ["losses", "drift at rest [mm]", "frames/s", "CPU ms/frame"], rows),
         "",
         *(["The real-sensor issue's bars, as the benchmark judges them:", "", *bars, ""] if bars else []),
         _source_block([f], cmd, _machine(d.get("machine")), d.get("note", "")),

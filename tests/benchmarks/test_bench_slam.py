@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from benchmarks import bench_slam
@@ -33,6 +35,50 @@ def test_bars_hold_a_preset_to_every_run_and_count_the_mh05_runs_at_the_bar():
     assert not b["textured"]["met"] and b["textured"]["seeds_missed"] == [] and b["textured"]["fps_min"] == 19.0
     assert (b["mh05"]["runs_met"], b["mh05"]["runs"], b["mh05"]["seeds_missed"]) == (1, 3, [1, 2])
     assert not b["mh05"]["met"] and b["mh05_still2"]["met"]
+
+
+def test_flights_bar_holds_a_resting_start_to_1_cm_of_drift():
+    rows = [
+        _row("flight", 0, rest_drift_m=0.004, rest_s=2.0),
+        _row("flight", 1, rest_drift_m=None, rest_s=0.2),  # no rest to judge
+        _row("textured", 0, rest_drift_m=0.02, rest_s=2.0),  # the bar is flight's
+    ]
+    b = bench_slam.bars(rows)
+    assert b["flight"]["met"] and b["flight"]["rest_drift_m_max"] == 0.004 and b["flight"]["runs_at_rest"] == 1
+    assert b["textured"]["met"] and "rest_drift_m_max" not in b["textured"]
+    b = bench_slam.bars([*rows, _row("flight", 2, rest_drift_m=0.012, rest_s=2.0)])
+    assert not b["flight"]["met"] and b["flight"]["seeds_missed"] == [2]
+    b = bench_slam.bars([_row("flight", 3, rest_drift_m=0.001, rest_s=2.0, init_after_s=None)])  # never started
+    assert not b["flight"]["met"]
+
+
+def _resting_sequence(t_rest_s: float):
+    """A stand-in for a sequence with ground truth: at rest until ``t_rest_s``, then 0.5 m/s along x."""
+    t0 = 1_000_000_000_000
+
+    def pose_at(ts):
+        t = (np.asarray(ts) - t0) * 1e-9
+        T = np.tile(np.eye(4), (t.size, 1, 1))
+        T[:, 0, 3] = 0.5 * np.clip(t - t_rest_s, 0.0, None)
+        return T
+
+    gt_ts = t0 + np.arange(0, 6_000_000_001, 5_000_000, dtype=np.int64)
+    return SimpleNamespace(gt=SimpleNamespace(ts=gt_ts), gt_pose_at=pose_at), t0
+
+
+def test_rest_drift_is_the_estimates_largest_move_while_the_ground_truth_rests(tmp_path):
+    seq, t0 = _resting_sequence(2.0)
+    t = np.arange(0.0, 5.0, 0.05)  # 20 Hz frames
+    p = np.zeros((t.size, 3))
+    p[:, 1] = 0.003 * np.minimum(t, 2.0) / 2.0  # the estimate creeps 3 mm in y over the rest
+    p[:, 0] = 0.5 * np.clip(t - 2.0, 0.0, None)
+    tr = np.column_stack([(t0 + np.round(t * 1e9)) * 1e-9, p, np.zeros((t.size, 3)), np.ones(t.size)])
+    np.savetxt(tmp_path / "trajectory.txt", tr, fmt="%.9f")
+    rest_s, drift = bench_slam.rest_drift(seq, tmp_path / "trajectory.txt")
+    assert rest_s == pytest.approx(2.0, abs=0.051) and drift == pytest.approx(0.003, abs=1e-4)
+    seq_short, _ = _resting_sequence(0.2)  # too short a rest to judge
+    assert bench_slam.rest_drift(seq_short, tmp_path / "trajectory.txt")[1] is None
+    assert bench_slam.rest_drift(SimpleNamespace(gt=None), tmp_path / "trajectory.txt") == (0.0, None)
 
 
 def _argv(tmp_path, *extra: str) -> list[str]:

@@ -1,10 +1,12 @@
-"""Benchmark of the sparse VI-SLAM: ATE, frames with a pose, time to initialise, losses, FPS, time per stage.
+"""Benchmark of the VI-SLAM (sparse; ``--dense``: the default dense system): ATE, frames with a pose, time to
+initialise, losses, FPS, time per stage.
 
     python benchmarks/bench_slam.py                      # realistic textured, whitewall, flight, handheld (30 s,
                                                          # seeds 0 1 2) and the MH_05 excerpt (real timing and
                                                          # with a 2 s still period prepended)
     python benchmarks/bench_slam.py --presets textured --synthetic --seeds 0 --duration 20   # earlier data
     python benchmarks/bench_slam.py --seeds 0 --duration 20 --set backend.window_size=8
+    python benchmarks/bench_slam.py --dense --out outputs/bench_slam_dense   # the same runs, dense
     python benchmarks/bench_slam.py --detectors          # gftt vs fast vs orb: detection time, track life,
     ATE
 
@@ -99,9 +101,14 @@ def make_config(preset: str, overrides: list[str]) -> SlamConfig:
     return SlamConfig.from_dict(d)
 
 
-def run_one(root: Path, cfg: SlamConfig, out: Path) -> dict:
+def run_one(root: Path, cfg: SlamConfig, out: Path, dense: bool = False) -> dict:
     seq = read_euroc(root)
-    m = run_sequence(seq, out, cfg, progress=False, plot=True)
+    if dense:
+        from runtime.dense import DenseConfig
+
+        m = run_sequence(seq, out, cfg, progress=False, plot=True, dense=DenseConfig())
+    else:
+        m = run_sequence(seq, out, cfg, progress=False, plot=True)
     m["rest_s"], m["rest_drift_m"] = rest_drift(seq, out / "trajectory.txt")
     return m
 
@@ -372,6 +379,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--synthetic", action="store_true", help="the earlier synthetic data (realism=false)")
+    ap.add_argument("--dense", action="store_true", help="the dense system (dit-slam's default) instead of sparse")
     ap.add_argument("--mh05", default=str(REPO.parent / "shared" / "data" / "euroc_MH_05_excerpt"))
     ap.add_argument("--mh05-runs", nargs="*", default=["real", "still"], help="real timing and/or still=2")
     ap.add_argument("--no-imu-noise", action="store_true", help="exact IMU (default: noise on)")
@@ -413,6 +421,7 @@ def main(argv: list[str] | None = None) -> int:
         "realism": not args.synthetic,
         "imu_noise": not args.no_imu_noise,
         "runtime": args.runtime,
+        "system": "dense" if args.dense else "sparse",
         "overrides": args.set,
         "complete": False,
         "runs": rows,
@@ -432,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         cfg = make_config(args.runtime, args.set)
         t0 = time.perf_counter()
-        m = run_one(root, cfg, out / f"{preset}_s{seed}")
+        m = run_one(root, cfg, out / f"{preset}_s{seed}", dense=args.dense)
         row = {"preset": preset, "seed": seed, "sequence": str(root), "wall_s": time.perf_counter() - t0}
         row.update(result_row(m))
         rows.append(row)

@@ -836,8 +836,9 @@ def _slam() -> list[str]:
     return out
 
 
-def _slam_realistic() -> list[str]:
-    f = RESULTS / "slam" / "bench_slam_realistic.json"
+def _slam_realistic(name: str = "bench_slam_realistic.json") -> list[str]:
+    """The realistic benchmark's table and bars (``bench_slam.py``; its ``--dense`` runs in ``*_dense.json``)."""
+    f = RESULTS / "slam" / name
     if not f.is_file():
         return []
     d = _load(f)
@@ -876,10 +877,12 @@ def _slam_realistic() -> list[str]:
         + ")"
         for fam, b in d.get("bars", {}).items()
     ]
+    dense = d.get("system") == "dense"
+    system = "dense, the default system" if dense else "sparse, default settings"
     return [
-        "## Sparse VI-SLAM on realistic sensors",
+        f"## {'Dense' if dense else 'Sparse'} VI-SLAM on realistic sensors",
         "",
-        "`dit-slam` (sparse, default settings) on the realistic presets (camera physics, vibrating IMU; 30 s) "
+        f"`dit-slam` ({system}) on the realistic presets (camera physics, vibrating IMU; 30 s) "
         "and on the real MH_05 excerpt completed with a vibrating IMU by `dit-sim imu` (`mh05`: real timing, "
         "starts in flight; `mh05_still2`: a 2 s still period prepended; seed = the IMU noise seed of `dit-sim imu`):",
         "",
@@ -1097,6 +1100,7 @@ def build() -> str:
     ]
     for section in (_table1, _table3, _dense_map, _coast, _jacobian, _slam, _slam_realistic):
         parts += section()
+    parts += _slam_realistic("bench_slam_realistic_dense.json")
     return "\n".join(parts).rstrip() + "\n"
 
 

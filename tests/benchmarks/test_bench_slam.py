@@ -113,6 +113,21 @@ def test_an_interrupted_invocation_keeps_its_runs_and_resume_runs_only_the_missi
     assert res["summary"]["textured"]["ate_sim3_rmse_m_max"] >= res["summary"]["textured"]["ate_sim3_rmse_m_mean"]
 
 
+def test_dense_hands_the_runs_the_dense_systems_settings(tmp_path, monkeypatch):
+    from runtime.dense import DenseConfig
+
+    real, seen = bench_slam.run_sequence, []
+
+    def spy(seq, out, *a, dense=None, **kw):
+        seen.append(dense)
+        return real(seq, out, *a, **kw)  # sparse underneath: this checks the hand-over, not the dense system
+
+    monkeypatch.setattr(bench_slam, "run_sequence", spy)
+    assert bench_slam.main([*_argv(tmp_path), "--seeds", "0", "--dense"]) == 0
+    assert len(seen) == 1 and isinstance(seen[0], DenseConfig) and seen[0] == DenseConfig()
+    assert json.loads((tmp_path / "out" / "bench_slam.json").read_text())["system"] == "dense"
+
+
 def test_an_unknown_preset_or_setting_is_refused_before_anything_is_rendered(tmp_path):
     with pytest.raises(SystemExit, match="unknown preset"):
         bench_slam.main(_argv(tmp_path, "--presets", "texturd"))

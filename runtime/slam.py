@@ -59,6 +59,10 @@ from runtime.trajectory import FrameRecord, fill_trajectory
 
 log = logging.getLogger(__name__)
 
+#: a first start not found this long after the first frame is reported as an event with the last attempt's reason,
+#: and again every as long: on a user's own data, why it waits shows without DEBUG logs
+INIT_WAIT_REPORT_S = 5.0
+
 
 @dataclass
 class SlamConfig:
@@ -150,6 +154,7 @@ class SlamSystem:
         self.init_info: dict | None = None  # how and when the system initialised (metrics.json)
         self.restarts: list[dict] = []  # re-initialisations in the same map frame (metrics.json)
         self.t_first: int | None = None  # first frame with IMU
+        self.init_wait_reports = 0  # waits for the first start reported so far (INIT_WAIT_REPORT_S)
         self.reloc = Relocalizer(cfg.reloc, camera, self.T_b_c, self.backend, self.tracker)
         self._gtsam = gtsam
         self.timers: dict[str, float] = defaultdict(float)
@@ -447,8 +452,21 @@ class SlamSystem:
         self.initializer.add(Snapshot(frame_idx, ts, feats, keep_image), keep_since=self.t_first)
         st = self.initializer.step(ts)
         if st is None:
+            self._report_wait(ts)
             return None
         return self._start(st, frame_idx, ts, feats)
+
+    def _report_wait(self, ts: int) -> None:
+        """Report a first start still not found every ``INIT_WAIT_REPORT_S`` after the first frame, with the last
+        attempt's reason (a restart after a reset has its own events)."""
+        if self.init_info is not None or self.t_first is None:
+            return
+        waited = ns_to_s(ts - self.t_first)
+        if int(waited // INIT_WAIT_REPORT_S) <= self.init_wait_reports:
+            return
+        self.init_wait_reports = int(waited // INIT_WAIT_REPORT_S)
+        why = self.initializer.last_reason or "no attempt yet: too few frames or tracks"
+        self.event(ts, f"not initialised {waited:.1f} s after the first frame (the last attempt: {why})")
 
     def _start(self, st: StartState, frame_idx: int, ts: int, feats) -> FrameRecord:
         """Hand the initial states to the window and give the frames before initialisation their poses."""

@@ -302,3 +302,18 @@ def test_a_frame_within_one_imu_period_before_the_first_sample_is_taken(lead_ms,
     assert len(skipped) == first
     t_traj, _ = system.trajectory()
     assert t_traj.size > 0 and t_traj[0] == frames[first]  # the frame has its pose
+
+
+def test_a_start_not_found_is_reported_every_5_s_with_the_last_attempts_reason():
+    # moving from the first frame with nothing to track: neither start can be taken
+    system, _ = run(11.0, motion=Motion(seed=0, t_rest=0.0, t_ramp=0.3, amp=2.0), blank=(0.0, 11.0))
+    assert not system.initialized and system.init_info is None
+    waits = [(t, msg) for t, msg in system.events if msg.startswith("not initialised")]
+    assert [msg.split(" s after")[0] for _, msg in waits] == ["not initialised 5.0", "not initialised 10.0"]
+    assert all("(the last attempt: " in msg for _, msg in waits)
+    assert system.initializer.last_reason and system.initializer.last_reason in waits[-1][1]
+
+
+def test_a_start_found_in_time_reports_no_wait():
+    system, _ = run(6.0, motion=Motion(seed=0, t_rest=0.0, t_ramp=0.3, amp=2.0))
+    assert system.initialized and not any(msg.startswith("not initialised") for _, msg in system.events)

@@ -39,6 +39,7 @@ import numpy as np
 
 from benchmarks.common import REPO, resumable_rows, slam_machine, write_json
 from runtime.io.euroc import read_euroc
+from runtime.io.tum import read_tum
 from runtime.run import run_sequence
 from runtime.slam import SlamConfig
 from sim.cache import cached_sequence as default_sequence
@@ -102,13 +103,10 @@ def make_config(preset: str, overrides: list[str]) -> SlamConfig:
 
 
 def run_one(root: Path, cfg: SlamConfig, out: Path, dense: bool = False) -> dict:
-    seq = read_euroc(root)
-    if dense:
-        from runtime.dense import DenseConfig
+    from runtime.dense import DenseConfig
 
-        m = run_sequence(seq, out, cfg, progress=False, plot=True, dense=DenseConfig())
-    else:
-        m = run_sequence(seq, out, cfg, progress=False, plot=True)
+    seq = read_euroc(root)
+    m = run_sequence(seq, out, cfg, progress=False, plot=True, dense=DenseConfig() if dense else None)
     m["rest_s"], m["rest_drift_m"] = rest_drift(seq, out / "trajectory.txt")
     return m
 
@@ -123,10 +121,9 @@ def rest_drift(seq, trajectory: Path, still_m: float = 1e-3, min_rest_s: float =
     """
     if seq.gt is None or not trajectory.is_file():
         return 0.0, None
-    tr = np.loadtxt(trajectory, ndmin=2)
-    ts = np.round(tr[:, 0] * 1e9).astype(np.int64)
+    ts, T = read_tum(trajectory)
     inside = (ts >= seq.gt.ts[0]) & (ts <= seq.gt.ts[-1])
-    ts, p = ts[inside], tr[inside, 1:4]
+    ts, p = ts[inside], T[inside, :3, 3]
     if ts.size < 2:
         return 0.0, None
     p_gt = seq.gt_pose_at(ts)[:, :3, 3]

@@ -462,9 +462,10 @@ class SlamSystem:
         if self.init_info is not None or self.t_first is None:
             return
         waited = ns_to_s(ts - self.t_first)
-        if int(waited // INIT_WAIT_REPORT_S) <= self.init_wait_reports:
+        due = int(waited // INIT_WAIT_REPORT_S)  # reports due by now
+        if due <= self.init_wait_reports:
             return
-        self.init_wait_reports = int(waited // INIT_WAIT_REPORT_S)
+        self.init_wait_reports = due
         why = self.initializer.last_reason or "no attempt yet: too few frames or tracks"
         self.event(ts, f"not initialised {waited:.1f} s after the first frame (the last attempt: {why})")
 

@@ -16,12 +16,15 @@ projections (:meth:`Relocalizer.guided_match`).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from runtime.geometry import inv_T, ns_to_s
 from runtime.reloc.descriptors import MapDescriptors, candidates_in_view, guided_match, in_view, match, pnp
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -109,11 +112,17 @@ class Relocalizer:
         df, okf = self.descriptors.describe(image, feats.uv)
         f_idx = np.nonzero(okf)[0]
         qi, ti = match(df[f_idx], dm, c.max_hamming, c.ratio)
+        n_in = 0
+        if qi.size >= c.min_inliers:
+            fi = f_idx[qi]
+            T_w_c, inl = pnp(X_c[ti], feats.xn[fi], c.pnp_reproj_px / self.camera.fx)
+            n_in = int(inl.sum())
+        log.debug(
+            "t=%.3f s: relocalisation tried: %d tracks, %d map points in view, %d matches, %d PnP inliers",
+            ns_to_s(kf.ts), feats.ids.size, ids_c.size, qi.size, n_in,
+        )  # fmt: skip
         if qi.size < c.min_inliers:
             return None
-        fi = f_idx[qi]
-        T_w_c, inl = pnp(X_c[ti], feats.xn[fi], c.pnp_reproj_px / self.camera.fx)
-        n_in = int(inl.sum())
         if T_w_c is None or n_in < c.min_inliers or n_in < c.min_inlier_ratio * qi.size:
             return None
         T_new = T_w_c @ self.T_c_b

@@ -403,7 +403,8 @@ def refine_intrinsics(
     with _cpp_stdout() as behind:
         e0 = graph.error(vals)
         try:
-            res = gtsam.LevenbergMarquardtOptimizer(graph, vals, lp).optimize()
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, lp)
+            res = opt.optimize()
             e1 = graph.error(res)
         except RuntimeError as e:  # an indeterminant system: too little of the data constrains some variable
             res = e
@@ -448,6 +449,7 @@ def refine_intrinsics(
     report["marginals_s"] = round(time.perf_counter() - t_m, 3)
     report.update(
         estimated=[round(float(v), 6) for v in refined],
+        iterations=opt.iterations(),
         observations=n_obs,
         error_before=round(float(e0), 1),
         error_after=round(float(e1), 1),

@@ -112,7 +112,7 @@ class Relocalizer:
         df, okf = self.descriptors.describe(image, feats.uv)
         f_idx = np.nonzero(okf)[0]
         qi, ti = match(df[f_idx], dm, c.max_hamming, c.ratio)
-        n_in = 0
+        T_w_c, n_in = None, 0  # too few matches: no PnP
         if qi.size >= c.min_inliers:
             fi = f_idx[qi]
             T_w_c, inl = pnp(X_c[ti], feats.xn[fi], c.pnp_reproj_px / self.camera.fx)
@@ -121,8 +121,6 @@ class Relocalizer:
             "t=%.3f s: relocalisation tried: %d tracks, %d map points in view, %d matches, %d PnP inliers",
             ns_to_s(kf.ts), feats.ids.size, ids_c.size, qi.size, n_in,
         )  # fmt: skip
-        if qi.size < c.min_inliers:
-            return None
         if T_w_c is None or n_in < c.min_inliers or n_in < c.min_inlier_ratio * qi.size:
             return None
         T_new = T_w_c @ self.T_c_b

@@ -62,7 +62,7 @@ def test_a_wrong_calibration_is_recovered():
     assert abs(cam.dist[0] / d[0] - 1) < 0.015, res.report  # written: 3 % off
     assert res.report["focal_change_rel"][0] < -0.008 and res.report["focal_change_rel"][1] > 0.006
     assert res.report["error_after"] < res.report["error_before"]
-    assert 1 <= res.report["iterations"] <= IntrinsicsConfig().iterations
+    assert 1 < res.report["iterations"] < IntrinsicsConfig().iterations  # converged by itself, in several steps
     # the reported standard deviations: below the prior's, and the truth within four of them
     sd = res.report["std"]["focal_rel"]
     assert 0 < sd[0] < 0.01 and 0 < sd[1] < 0.01

@@ -66,7 +66,7 @@ def slam_command(slam: str | Path, seq: Path, out: Path, system: str, overrides:
 
 def run_row(m: dict) -> dict:
     """The figures of one run kept in the result file, from its ``metrics.json``."""
-    intr = m.get("intrinsics") or {}
+    intr, ini = m.get("intrinsics") or {}, m.get("initialisation") or {}
     return {
         "complete": bool(m.get("complete")),
         "se3_m": m.get("ate_se3_rmse_m"),
@@ -77,6 +77,8 @@ def run_row(m: dict) -> dict:
         "cpu_s": m.get("cpu_s"),
         "fps": m.get("fps"),
         "first_pass_s": intr.get("seconds_total"),
+        "init": ini.get("method"),  # how and when the run started (issue #21: within 2 s of data)
+        "init_after_s": ini.get("after_s"),
         "error": m.get("error") or m.get("eval_error"),
     }
 

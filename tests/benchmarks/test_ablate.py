@@ -85,7 +85,8 @@ seed = int(Path(kv["sequence"]).name.rsplit("_s", 1)[1])
 se3 = 0.01 * seed + float(kv.get("fake.offset", "0")) + (0.001 if kv["dense"] == "true" else 0.0)
 m = {"complete": kv.get("fake.complete", "true") == "true", "frames": 100, "frames_with_pose": 100,
      "cpu_s": 5.0 + 100 * float(kv.get("fake.offset", "0")), "fps": 20.0,
-     "ate_se3_rmse_m": se3, "ate_sim3_rmse_m": se3 / 2, "intrinsics": {"seconds_total": 1.0}}
+     "ate_se3_rmse_m": se3, "ate_sim3_rmse_m": se3 / 2, "intrinsics": {"seconds_total": 1.0},
+     "initialisation": {"method": "dynamic", "after_s": 0.1 * seed}}
 (out / "metrics.json").write_text(json.dumps(m))
 """
 
@@ -116,6 +117,10 @@ def test_ablation_runs_every_arm_writes_the_rule_and_summary_and_resumes(fake, c
     saved = json.loads(out.read_text())
     assert saved["rule"].startswith("Adopt F") and saved["arms"] == {"B": "", "F": "fake.offset=0.002"}
     assert saved["baseline"] == "B" and len(saved["runs"]) == 8 and saved["summary"] == res["summary"]
+    assert {(r["sequence"], r["init"], r["init_after_s"]) for r in saved["runs"]} == {
+        ("flight_s1", "dynamic", 0.1),
+        ("flight_s2", "dynamic", 0.2),
+    }
     for system in ("sparse", "dense"):
         s = saved["summary"][f"{system}/F"]
         assert s["pairs"] == 2 and s["se3_mm"][0] == pytest.approx(2.0) and s["sim3_mm"][0] == pytest.approx(1.0)

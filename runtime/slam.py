@@ -54,7 +54,15 @@ from runtime.init import DynamicInitConfig, InitConfig, imu_rest_stats
 from runtime.init.runner import InitRunner, Snapshot, StartState
 from runtime.reloc import Relocalizer, RelocConfig
 from runtime.reloc.relocalizer import relocalize_pending
-from runtime.start import adapt_imu_noise, backfill_records, repose_older, seed_window, try_restart
+from runtime.start import (
+    adapt_imu_noise,
+    backfill_records,
+    repose_diverged,
+    repose_older,
+    seed_window,
+    try_restart,
+    withdraw_diverged,
+)
 from runtime.trajectory import FrameRecord, fill_trajectory
 
 log = logging.getLogger(__name__)
@@ -162,6 +170,8 @@ class SlamSystem:
         self.relocalisations: list[dict] = []  # per relocalisation: when, how long lost, drift corrected
         self.records: list[FrameRecord] = []
         self.segment = 0  # current trajectory segment (see runtime.trajectory.FrameRecord)
+        self.t_visual: int | None = None  # ns, the last frame with visual tracking (runtime.start.withdraw_diverged)
+        self.diverged_pending: list[Snapshot] = []  # frames of a diverged estimate, for the next start to pose
         self.n_frames = 0
         self.n_map_matches = 0
         self.kf_reasons: dict[str, int] = defaultdict(int)
@@ -270,6 +280,8 @@ class SlamSystem:
         T_cur, feats, n_lm = self._refine(T_pred, feats)
         self.T_cur, self.v_cur = T_cur, v_pred
         self._update_lost(ts, n_lm)
+        if self.acquired and not self.lost:
+            self.t_visual = ts
         if try_restart(self, frame_idx, ts, image, feats):
             self._toc("init", t0)
             last = self.records[-1] if self.records else None
@@ -475,6 +487,7 @@ class SlamSystem:
         scales = adapt_imu_noise(self, t0, ts)
         if scales is not None:
             self.noise_scales = scales
+        repose_diverged(self, st)
         kf_ids = seed_window(self, st)
         self.initialized = True
         self.lost = False
@@ -583,7 +596,8 @@ class SlamSystem:
         t0 = self._toc("marginalize", t0)
         reason = self.backend.diverged()
         if reason is not None:
-            self.event(ts, f"estimate diverged ({reason}): resetting, waiting for a still period to re-initialise")
+            withdrawn = withdraw_diverged(self)
+            self.event(ts, f"estimate diverged ({reason}): resetting, {withdrawn}; waiting to re-initialise")
             self._hard_reset()
             return self._record(frame_idx, ts, False, "lost", record=False)
         latest = self.backend.latest
@@ -613,6 +627,7 @@ class SlamSystem:
         self.event(ts, f"IMU gap of {gap:.2f} s: no poses inside it; re-initialising from the data after it "
                    f"(trajectory segment {self.segment + 1}, in a new frame)")  # fmt: skip
         self.segment += 1
+        self.diverged_pending = []  # not across the gap
         self._hard_reset()
 
     def _hard_reset(self) -> None:

@@ -286,6 +286,82 @@ def test_a_long_imu_gap_gives_no_poses_inside_and_a_new_segment():
         assert met["ate_se3_rmse_m"] < 0.05, (k, met)
 
 
+def test_a_diverged_estimates_poses_are_withdrawn_and_posed_again_from_the_next_start(monkeypatch):
+    """A divergence declared at 8.5 s, while coasting through 2 s without features (forced: the estimate itself is
+    fine): the poses since visual tracking was lost are withdrawn and the next start, after the blank, integrates
+    the IMU back over them (``imu_backfill``) in a new segment, its own frame. The poses before stay in segment 0,
+    the failed window's keyframes at their poses before the failed solve. Both segments are accurate in their own
+    frames, and no frame is posed twice."""
+    from runtime.backend.window import SlidingWindowBackend
+
+    fired = []
+
+    def diverged(self):
+        if not fired and self.latest.ts >= T0 + int(8.5e9):
+            fired.append(self.latest.ts)
+            return "forced"
+        return None
+
+    monkeypatch.setattr(SlidingWindowBackend, "diverged", diverged)
+    system, m = run(16.0, blank=(7.0, 9.0))
+    msgs = [msg for _, msg in system.events]
+    assert any("estimate diverged (forced)" in s and "poses of the diverged estimate withdrawn" in s for s in msgs)
+    seg = np.array([r.segment for r in system.records])
+    t = np.array([r.ts for r in system.records])
+    assert set(seg) == {0, 1}
+    assert T0 + 6.5e9 <= t[seg == 0].max() < T0 + 7.0e9  # tracked up to the blank
+    info = system.init_info
+    assert info["method"] == "dynamic" and info["diverged_reposed"] > 10 and info["diverged_unposed"] == 0, info
+    status, imu_s = frame_status(system.records)
+    back = np.array([s == "imu_backfill" for s in status])
+    assert back.sum() >= info["diverged_reposed"] and np.all(seg[back] == 1) and imu_s[back].max() > 1.5
+    assert np.all(np.diff(t) > 0)  # one pose per frame, in time order
+    assert (t[seg == 1] < fired[0]).sum() >= info["diverged_reposed"]  # those before the divergence, again
+    kts, _ = system.keyframe_trajectory()
+    assert set(kts) == {r.ts for r in system.records if r.is_kf}  # the withdrawn keyframes are gone
+    ts, T = system.trajectory()
+    for k, bound in ((0, 0.02), (1, 0.02)):
+        mk = seg == k
+        met = ev.trajectory_metrics(ts[mk], T[mk], ts[mk], m.body((ts[mk] - T0) * 1e-9))
+        assert met["ate_se3_rmse_m"] < bound, (k, met)
+
+
+def test_what_a_divergence_withdraws():
+    """Withdrawal rules on a bare system (keyframe k at k s, two frames each, segment 1 from keyframe 2, the failed
+    window keyframes 4 and 5): with no frame ever tracked visually, every record of the current segment goes and the
+    segment stays (none of it is left); with one, the records after it go, the failed window's keyframes that stay
+    take their poses from after their own solve, and the segment moves on. Older segments are never touched."""
+    from types import SimpleNamespace
+
+    from runtime.start import withdraw_diverged
+
+    def system(t_visual):
+        kfs = {k: SimpleNamespace(ts=T0 + k * 10**9) for k in range(6)}
+        recs = []
+        for i in range(12):
+            k = i // 2
+            T = np.eye(4)
+            T[0, 3] = i  # the online estimate
+            recs.append(FrameRecord(T0 + i * 5 * 10**8, i, k, np.eye(4), T, i % 2 == 0, "tracking"))
+            recs[-1].segment = 0 if k < 2 else 1
+        hist = {k: (kf.ts, -np.eye(4)) for k, kf in kfs.items()}  # the failed solve's
+        mp = SimpleNamespace(keyframes=kfs, active=[4, 5], history=hist, landmarks={7: None})
+        return SimpleNamespace(map=mp, records=recs, segment=1, t_visual=t_visual, t_first=T0, diverged_pending=[])
+
+    s = system(None)
+    assert withdraw_diverged(s) == "8 poses of the diverged estimate withdrawn (2.00-5.50 s after the first frame)"
+    assert [r.frame_idx for r in s.records] == [0, 1, 2, 3] and s.segment == 1 and s.map.landmarks == {}
+    assert set(s.map.history) == {0, 1} and [p.frame_idx for p in s.diverged_pending] == list(range(4, 12))
+    s = system(T0 + 3 * 10**9)  # frame 6 (keyframe 3) was the last one tracked
+    assert withdraw_diverged(s).startswith("5 poses")
+    assert [r.frame_idx for r in s.records] == list(range(7)) and s.segment == 2
+    assert set(s.map.history) == {0, 1, 2, 3} and s.map.history[3][1][0, 0] == -1  # not in the failed window
+    s = system(T0 + int(5.5e9))  # tracked to the end: nothing withdrawn
+    assert withdraw_diverged(s) == "no pose withdrawn" and len(s.records) == 12 and s.segment == 2
+    assert [s.map.history[k][1][0, 3] for k in (4, 5)] == [8, 10]  # the keyframes' online poses
+    assert s.map.history[3][1][0, 0] == -1 and s.diverged_pending == []
+
+
 @pytest.mark.parametrize("lead_ms, first", [(3, 0), (20, 1)])
 def test_a_frame_within_one_imu_period_before_the_first_sample_is_taken(lead_ms, first):
     """An image a few ms before the IMU's first sample (a camera-IMU time offset moves it there) is processed with

@@ -524,6 +524,7 @@ def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_recor
         T_cur=T0.copy(),
         backend=SimpleNamespace(clear_window=lambda: None),
         map=SimpleNamespace(history={}),
+        diverged_pending=[],
         restarts=[],
         event=lambda *a, **k: None,
     )

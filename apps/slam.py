@@ -134,6 +134,8 @@ def _story(m: dict) -> str | None:
             f"{status['imu_backfill']} frames before a (re)start posed by the IMU alone"
             + (f" (up to {back:.1f} s)" if back else "")
         )
+    if status.get("building"):
+        parts.append(f"{status['building']} frames on the IMU before visual tracking was acquired")
     if status.get("coasting"):
         parts.append(f"{status['coasting']} frames coasting on the IMU")
     if m.get("relocalisations"):

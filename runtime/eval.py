@@ -154,8 +154,8 @@ def plot_top_view(
     imu_only: np.ndarray | None = None,
 ) -> Path:
     """Top view (x-y) of the estimate (SE(3)-aligned to the ground truth when given) and the ground truth;
-    ``imu_only`` (N,) bool marks the poses that rest on the IMU alone (``frames.csv``: coasting, no image, before a
-    start), drawn as orange dots."""
+    ``imu_only`` (N,) bool marks the poses that rest on the IMU alone (``frames.csv``: coasting, building, no image,
+    before a start), drawn as orange dots."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -46,7 +46,8 @@ class LiveState:
         frame_idx: its index in the order of processing.
         initialized: False until the static initialisation has succeeded (then ``T_w_b`` and ``v_w`` are set).
         status: ``initialising``, ``tracking``, ``still``, ``coasting`` (visual tracking lost, IMU only),
-            ``no_image`` (the image was None) or ``keyframe``.
+            ``building`` (after a start, visual tracking not yet acquired, IMU only), ``no_image`` (the image was
+            None) or ``keyframe``.
         T_w_b: (4, 4) body pose in the world (causal estimate), or None.
         v_w: (3,) body velocity [m/s], or None.
         is_keyframe: the image became a keyframe.

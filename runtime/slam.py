@@ -293,7 +293,7 @@ class SlamSystem:
             if feats.ids.size < self.cfg.redetect_ratio * self.cfg.features.max_features:
                 self.tracker.replenish(ts, image)
                 self._toc("detect", t0)
-            status = "coasting" if self.lost else ("still" if still else "tracking")
+            status = "coasting" if self.lost else ("still" if still else self._visual_status())
             return self._record(frame_idx, ts, False, status)
         return self._keyframe(frame_idx, ts, image, T_cur, v_pred, why, imu_gap=gap > self.cfg.imu_gap_reinit_s)
 
@@ -404,6 +404,12 @@ class SlamSystem:
             self.event(ts, f"visual tracking regained ({n_lm} landmarks) after {dur:.2f} s", logging.INFO)
             if c.reloc.enabled and dur >= c.reloc.min_lost_s:
                 self.reloc_pending = {"since": self.lost_since, "regained": ts, "attempts": 0}
+
+    def _visual_status(self) -> str:
+        """A moving frame's status while not lost: ``tracking`` once visual tracking is acquired, before that
+        ``building`` (after a start, the map has fewer than ``lost_min_landmarks`` landmarks in view: the pose rests
+        on the IMU alone, as when coasting; after a start turning in place on MH_05, 1.5-4.3 s)."""
+        return "tracking" if self.acquired else "building"
 
     def _decide_keyframe(self, ts: int, feats: FrameFeatures, T_cur: np.ndarray, kf: Keyframe, n_lm: int, gap: float):
         """Stillness and the keyframe decision: ``(is_kf, reason, still)``."""
@@ -605,7 +611,9 @@ class SlamSystem:
         self.T_cur, self.v_cur = latest.T_w_b.copy(), latest.v_w.copy()
         self.last_kf_feats = self.tracker.current(ts)
         self.still_since_kf = True
-        rec = self._record(frame_idx, ts, True, "coasting" if self.lost else "tracking")
+        rec = self._record(
+            frame_idx, ts, True, "coasting" if self.lost else ("tracking" if still else self._visual_status())
+        )
         if rec is not None:
             rec.T_created = T_cur.copy()
         return rec

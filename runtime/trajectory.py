@@ -23,21 +23,22 @@ class FrameRecord:
     T_rel: np.ndarray  # (4, 4) T_kf_b: pose relative to the reference keyframe at the time
     T_online: np.ndarray  # (4, 4) causal estimate T_w_b
     is_kf: bool
-    status: str  # tracking | coasting | no_image | still | init | imu_backfill (see :func:`frame_status`)
+    status: str  # tracking | coasting | building | no_image | still | init | imu_backfill (see :func:`frame_status`)
     T_created: np.ndarray | None = None  # keyframes: the pose they entered the window with (before LM)
     segment: int = 0  # trajectory segment: a new one (in a new frame) after each re-initialisation from scratch
     imu_s: float = 0.0  # imu_backfill: seconds of IMU integrated back from the start's first posed frame
 
 
 #: statuses whose pose comes from the IMU alone
-IMU_ONLY = ("coasting", "no_image", "imu_backfill")
+IMU_ONLY = ("coasting", "building", "no_image", "imu_backfill")
 
 
 def frame_status(records: list[FrameRecord]) -> tuple[list[str], np.ndarray]:
     """Each record's status and the seconds its pose rests on the IMU alone (in the records' order).
 
     ``tracking``, ``still`` (at rest), ``init`` (posed by the start's own window): 0. ``coasting`` (too few tracked
-    landmarks) and ``no_image``: the time since the last frame with a visual pose. ``imu_backfill``: a frame kept
+    landmarks), ``building`` (after a start, before visual tracking is acquired) and ``no_image``: the time since the
+    last frame with a visual pose. ``imu_backfill``: a frame kept
     from before the start (or a restart's window), posed by integrating the IMU back from the start's first posed
     frame; the time to it."""
     status = [r.status for r in records]

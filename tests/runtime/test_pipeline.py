@@ -258,7 +258,7 @@ def test_the_summary_says_how_the_run_went():
             {"t_s": 104.1, "why": "after a start turning in place"},
             {"t_s": 109.15, "why": "after a loss with tracks in view"},
         ],
-        "frame_status": {"tracking": 400, "imu_backfill": 165, "coasting": 12},
+        "frame_status": {"tracking": 400, "imu_backfill": 165, "building": 30, "coasting": 12},
         "from_start": {"left_out_imu_max_s": 8.2},
         "relocalisations": [{"lost_s": 3.0}],
         "segments": [{"segment": 0}, {"segment": 1}],
@@ -266,7 +266,8 @@ def test_the_summary_says_how_the_run_went():
     assert _story(m) == (
         "  started (hover) 1.10 s in; restarted at 4.10 s (after a start turning in place); restarted at 9.15 s "
         "(after a loss with tracks in view); 165 frames before a (re)start posed by the IMU alone (up to 8.2 s); "
-        "12 frames coasting on the IMU; 1 relocalisation(s); 2 segments (reset after a divergence or an IMU gap)"
+        "30 frames on the IMU before visual tracking was acquired; 12 frames coasting on the IMU; "
+        "1 relocalisation(s); 2 segments (reset after a divergence or an IMU gap)"
     )
     assert _story({"initialisation": None}) is None
 

@@ -51,7 +51,13 @@ def test_pipeline_on_a_10s_sequence_reaches_a_bounded_ate():
     ids, P = system.map.all_points()
     assert len(ids) > 200
     assert system.records[0].ts - T0 < 2.0e9  # initialised within the 1.5 s rest + 0.5 s
-    assert all(r.status in ("tracking", "still", "init") for r in system.records)
+    status, imu_s = frame_status(system.records)
+    assert set(status) <= {"tracking", "still", "init", "building"}
+    # leaving rest, the map has no landmark until the parallax grows: those poses are the IMU's alone, and say so
+    building = [i for i, s in enumerate(status) if s == "building"]
+    assert building and len(building) == building[-1] - building[0] + 1  # one stretch, then tracking
+    assert status[building[-1] + 1] == "tracking" and status[building[0] - 1] in ("still", "init", "tracking")
+    assert 0 < imu_s[building[0]] < imu_s[building[-1]] < 2.0
 
 
 def test_still_camera_gives_a_still_trajectory():

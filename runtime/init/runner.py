@@ -5,14 +5,14 @@ Each tracked frame before initialisation is kept (its features, and its image fo
 
 1. **At rest** (:class:`runtime.init.static.StaticInitializer`): the last ``still_duration_s`` of IMU samples
    and tracks pass the rest rule. The frames of that window get the initial pose (the sensor did not move).
-2. **In motion** (:func:`runtime.init.dynamic.initialize_in_motion`), every ``try_every_s`` once the frames
-   span ``min_window_s``: structure from motion and the visual-inertial alignment over the frames since
-   ``window_s`` ago (from the first frame while the sequence is younger), ``n_frames`` of them; when those frames
-   show less parallax than ``min_parallax_px`` (slow motion), the shortest longer window up to ``max_window_s``
-   that shows it. When the start fails on that window (structure from motion or the alignment), it is tried once
-   more over the longest window of kept frames up to ``max_window_s``: in slow motion an accelerometer bias of
-   0.2 m/s^2 outweighs the acceleration over 1 s, and the alignment's scale comes out negative (the realistic
-   ``tabletop`` preset, reports/).
+2. **In motion** (:func:`runtime.init.dynamic.initialize_in_motion`), every ``try_every_s`` once the frames span
+   ``min_window_s``: structure from motion and the visual-inertial alignment over the frames since ``window_s`` ago
+   (from the first frame while the sequence is younger), ``n_frames`` of them; with a ``min_parallax_px`` gate set
+   (by default none) and those frames under it (slow motion), the shortest longer window up to ``max_window_s`` that
+   passes it. When the start fails on that window (structure from motion or the alignment), it is tried once more
+   over the longest window of kept frames up to ``max_window_s``: in slow motion an accelerometer bias of 0.2 m/s^2
+   outweighs the acceleration over 1 s, and the alignment's scale comes out negative (the realistic ``tabletop``
+   preset, reports/).
 3. **Turning in place** (:func:`runtime.init.dynamic.initialize_hovering`), when the window spans ``window_s``,
    structure from motion failed and the images show rotation only.
 

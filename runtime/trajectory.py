@@ -38,9 +38,8 @@ def frame_status(records: list[FrameRecord]) -> tuple[list[str], np.ndarray]:
 
     ``tracking``, ``still`` (at rest), ``init`` (posed by the start's own window): 0. ``coasting`` (too few tracked
     landmarks), ``building`` (after a start, before visual tracking is acquired) and ``no_image``: the time since the
-    last frame with a visual pose. ``imu_backfill``: a frame kept
-    from before the start (or a restart's window), posed by integrating the IMU back from the start's first posed
-    frame; the time to it."""
+    last frame with a visual pose. ``imu_backfill``: a frame kept from before the start (or a restart's window), posed
+    by integrating the IMU back from the start's first posed frame; the time to it."""
     status = [r.status for r in records]
     imu_s = np.zeros(len(records))
     last_visual = None

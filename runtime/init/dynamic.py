@@ -214,11 +214,12 @@ def _two_view(a, b, focal: float, cfg: DynamicInitConfig):
     i0, i1 = _common(a, b)
     if i0.size < cfg.min_tracks:
         raise InitFailed(f"{i0.size} tracks common to the pair (< {cfg.min_tracks})")
-    _, rot_px, _ = rotation_only(a, b, focal)
-    if rot_px < cfg.min_parallax_px:
-        raise InitFailed(
-            f"rotation-compensated parallax {rot_px:.1f} px (< {cfg.min_parallax_px}): too little translation"
-        )
+    if cfg.min_parallax_px > 0:  # the gate is off by default: no rotation-only fit for it then
+        _, rot_px, _ = rotation_only(a, b, focal)
+        if rot_px < cfg.min_parallax_px:
+            raise InitFailed(
+                f"rotation-compensated parallax {rot_px:.1f} px (< {cfg.min_parallax_px}): too little translation"
+            )
     x0, x1 = a.xn[i0], b.xn[i1]
     try:  # a pure rotation seen exactly makes the five-point solver's polynomial degenerate (OpenCV raises)
         E, inl = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=cfg.ransac_px / focal)

@@ -2,10 +2,9 @@
 
 For a sequence with no period at rest (a MAV already flying, a hand-held camera picked up while moving):
 
-1. **Visual structure from motion** over the frames of the last ``window_s`` (subsampled to ``n_frames``; with a
-   ``min_parallax_px`` gate set (by default none) and those frames under it, the shortest longer window up to
-   ``max_window_s`` that passes; when this or the alignment below fails, :class:`runtime.init.runner.InitRunner`
-   tries the longest window once more): the essential matrix between the first and the last frame (RANSAC), their
+1. **Visual structure from motion** over the frames of the last ``window_s`` (subsampled to ``n_frames``; when
+   this or the alignment below fails, :class:`runtime.init.runner.InitRunner` tries the longest window up to
+   ``max_window_s`` once more): the essential matrix between the first and the last frame (RANSAC), their
    common tracks triangulated, every other frame's pose by PnP on those points, then all tracks triangulated and
    refined by a small bundle adjustment (GTSAM, Huber). Poses ``T_c0_ck`` are known up to one scale.
 2. **Gyroscope bias**: the visual relative rotations against the gyro's (Gauss-Newton on ``b_g``). The bias is
@@ -62,13 +61,12 @@ class DynamicInitConfig:
 
     enabled: bool = True  # initialise in motion when the sequence is not at rest
     window_s: float = 1.0  # s of frames used (the window grows from the first frame up to this)
-    max_window_s: float = 3.0  # s, longest window tried when ``window_s`` shows too little parallax or fails to align
+    max_window_s: float = 3.0  # s, longest window tried when ``window_s`` fails
     min_window_s: float = 0.5  # s, shortest window tried
     n_frames: int = 10  # frames of the window used (evenly spaced in time), at most backend.window_size
     min_tracks: int = 30  # tracks common to the first and last frame
-    # In front of a wall a rotation-only fit absorbs a translation (handheld s289: 2-8.6 px for 7 s at 0.14-0.25
-    # m/s, a start 8.45 s in at 12 px, in motion at 0.6 s at 0); 12 -> 0 lost nothing on 20 fresh pairs (reports/)
-    min_parallax_px: float = 0.0  # px after a rotation-only fit, median; 0: none, the triangulation angle decides
+    # the triangulation angle decides whether the pair translated; a gate on the parallax left after a rotation-only
+    # image fit was dropped: in front of a wall that fit absorbs a translation (handheld s289, reports/ablations.md)
     min_parallax_deg: float = 1.5  # median triangulation angle of the pair
     ransac_px: float = 1.5  # essential-matrix and PnP inlier threshold
     max_reproj_px: float = 2.0  # bundle-adjusted reprojection RMS bound
@@ -214,12 +212,6 @@ def _two_view(a, b, focal: float, cfg: DynamicInitConfig):
     i0, i1 = _common(a, b)
     if i0.size < cfg.min_tracks:
         raise InitFailed(f"{i0.size} tracks common to the pair (< {cfg.min_tracks})")
-    if cfg.min_parallax_px > 0:  # the gate is off by default: no rotation-only fit for it then
-        _, rot_px, _ = rotation_only(a, b, focal)
-        if rot_px < cfg.min_parallax_px:
-            raise InitFailed(
-                f"rotation-compensated parallax {rot_px:.1f} px (< {cfg.min_parallax_px}): too little translation"
-            )
     x0, x1 = a.xn[i0], b.xn[i1]
     try:  # a pure rotation seen exactly makes the five-point solver's polynomial degenerate (OpenCV raises)
         E, inl = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=cfg.ransac_px / focal)

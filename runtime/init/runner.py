@@ -7,12 +7,10 @@ Each tracked frame before initialisation is kept (its features, and its image fo
    and tracks pass the rest rule. The frames of that window get the initial pose (the sensor did not move).
 2. **In motion** (:func:`runtime.init.dynamic.initialize_in_motion`), every ``try_every_s`` once the frames span
    ``min_window_s``: structure from motion and the visual-inertial alignment over the frames since ``window_s`` ago
-   (from the first frame while the sequence is younger), ``n_frames`` of them; with a ``min_parallax_px`` gate set
-   (by default none) and those frames under it (slow motion), the shortest longer window up to ``max_window_s`` that
-   passes it. When the start fails on that window (structure from motion or the alignment), it is tried once more
-   over the longest window of kept frames up to ``max_window_s``: in slow motion an accelerometer bias of 0.2 m/s^2
-   outweighs the acceleration over 1 s, and the alignment's scale comes out negative (the realistic ``tabletop``
-   preset, reports/).
+   (from the first frame while the sequence is younger), ``n_frames`` of them. When the start fails on that window
+   (structure from motion or the alignment), it is tried once more over the longest window of kept frames up to
+   ``max_window_s``: in slow motion an accelerometer bias of 0.2 m/s^2 outweighs the acceleration over 1 s, and the
+   alignment's scale comes out negative (the realistic ``tabletop`` preset, reports/).
 3. **Turning in place** (:func:`runtime.init.dynamic.initialize_hovering`), when the window spans ``window_s``,
    structure from motion failed and the images show rotation only.
 
@@ -40,7 +38,6 @@ from runtime.init.dynamic import (
     InitFailed,
     initialize_hovering,
     initialize_in_motion,
-    rotation_only,
 )
 from runtime.init.static import InitConfig, StaticInitializer
 
@@ -175,7 +172,7 @@ class InitRunner:
             if not allow_hover or span < d.window_s:
                 self._failed(ts, str(e))
                 return None
-            win, sel = base[:2]  # turning in place is judged over window_s, not over a longer window
+            win, sel = base  # turning in place is judged over window_s, not over a longer window
             feats = [s.feats for s in sel]
             try:
                 r = initialize_hovering(feats, self.imu, self.T_b_c, self.focal, d)
@@ -206,25 +203,17 @@ class InitRunner:
         return StartState(method, kfs, bias, frames, sigmas, info, t_window=sel[0].ts)
 
     def _motion(self, ts: int, base: tuple, since: int | None) -> tuple:
-        """Structure from motion and alignment over the window ``base`` (:meth:`_window`), or, without ``since``, a
-        longer one where it shows too little parallax or fails; returns ``(result, window, frames used)``. Raises
-        :class:`InitFailed`."""
-        d = self.dyn
-        win, sel, par_px, n = base
-        if since is None and n >= d.min_tracks and par_px < d.min_parallax_px:
-            longer = self._longer_window(ts, win[0].ts)
-            if longer is not None:
-                win, sel, par_px, n = longer
-        if n >= d.min_tracks and par_px < d.min_parallax_px:
-            raise InitFailed(f"rotation-compensated parallax {par_px:.1f} px (< {d.min_parallax_px})")
+        """Structure from motion and alignment over the window ``base`` (:meth:`_window`), or, without ``since``, over
+        the longest one where it fails; returns ``(result, window, frames used)``. Raises :class:`InitFailed`."""
+        win, sel = base
         self.tries += 1
         try:
             return self._in_motion([s.feats for s in sel], ts), win, sel
         except InitFailed:
-            longest = self._window(ts - s_to_ns(d.max_window_s)) if since is None else None
+            longest = self._window(ts - s_to_ns(self.dyn.max_window_s)) if since is None else None
             if longest is None or longest[0][0].ts >= win[0].ts:
                 raise
-            win, sel = longest[:2]
+            win, sel = longest
             return self._in_motion([s.feats for s in sel], ts), win, sel
 
     def _in_motion(self, feats: list, ts: int):
@@ -257,35 +246,11 @@ class InitRunner:
         med = np.median(b, axis=0)
         return med if np.linalg.norm(b - med, axis=1).max() <= d.bias_agree else None
 
-    def _window(self, since: int) -> tuple[list, list, float, int]:
-        """The kept frames from ``since`` (ns), the ``n_frames`` of them used (evenly spaced), and the median
-        rotation-compensated parallax [px] and common tracks of the first and last of those (cheap: it lets the
-        caller skip structure from motion without translation)."""
+    def _window(self, since: int) -> tuple[list, list]:
+        """The kept frames from ``since`` (ns) and the ``n_frames`` of them used (evenly spaced)."""
         win = [s for s in self.frames if s.ts >= since]
         idx = np.unique(np.linspace(0, len(win) - 1, min(self.dyn.n_frames, len(win))).round().astype(int))
-        sel = [win[i] for i in idx]
-        _, par_px, n = rotation_only(sel[0].feats, sel[-1].feats, self.focal)
-        return win, sel, par_px, n
-
-    def _longer_window(self, ts: int, first: int) -> tuple[list, list, float, int] | None:
-        """The shortest window longer than ``window_s`` (0.5 s steps up to ``max_window_s``, from the frames kept
-        before ``first``, ns) whose pair has ``min_parallax_px`` and ``min_tracks``; None when there is none.
-        Slow motion needs it: the realistic ``tabletop`` seed 0 (objects at 0.3 m) moved 5-9 px in each 1 s
-        window and started only after 22 s (reports/ablations.md)."""
-        d = self.dyn
-        span = d.window_s
-        while span < d.max_window_s - 1e-6:
-            span = min(span + 0.5, d.max_window_s)
-            since = ts - s_to_ns(span)
-            if self.frames[0].ts >= first:  # no older frames kept
-                return None
-            cand = self._window(since)
-            if cand[0][0].ts >= first:
-                continue
-            first = cand[0][0].ts
-            if cand[3] >= d.min_tracks and cand[2] >= d.min_parallax_px:
-                return cand
-        return None
+        return win, [win[i] for i in idx]
 
     def _before(self, first: Snapshot, T: np.ndarray, v: np.ndarray, bias: np.ndarray) -> list:
         """Poses of the kept frames older than ``first`` (state ``T``, ``v``), by integrating the IMU backwards,

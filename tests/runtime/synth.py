@@ -59,11 +59,15 @@ def _rot(yaw, pitch, roll):
 
 
 class Motion:
-    """Smooth body motion: rest for ``t_rest`` s, then sums of sines (C-infinity envelope)."""
+    """Smooth body motion: rest for ``t_rest`` s, then sums of sines (C-infinity envelope); with ``t_translate``
+    later than ``t_rest`` the body only turns until then."""
 
-    def __init__(self, t_rest=1.5, t_ramp=1.0, amp=0.6, rate=0.4, seed=0, T_b_c=EUROC_T_BS, still=False):
+    def __init__(
+        self, t_rest=1.5, t_ramp=1.0, amp=0.6, rate=0.4, seed=0, T_b_c=EUROC_T_BS, still=False, t_translate=None
+    ):
         rng = np.random.default_rng(seed)
         self.t_rest, self.t_ramp, self.still = t_rest, t_ramp, still
+        self.t_translate = t_rest if t_translate is None else t_translate
         self.freq = rng.uniform(0.4, 1.0, (3, 2))
         self.phase = rng.uniform(0, 2 * np.pi, (3, 2))
         self.amp = amp * rng.uniform(0.5, 1.0, (3, 2)) * np.array([[1.0], [1.0], [0.3]])
@@ -79,12 +83,13 @@ class Motion:
         """R_w_c (N, 3, 3), p_w_c (N, 3) at times t (N,) s."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         e = np.zeros_like(t) if self.still else self._env(t)
+        e_p = np.zeros_like(t) if self.still else _smooth_step((t - self.t_translate) / self.t_ramp)
         tau = t - self.t_rest
 
         def s(A, F, P):
             return np.sum(A[None] * (np.sin(tau[:, None, None] * F[None] + P[None]) - np.sin(P)[None]), -1)
 
-        p = e[:, None] * s(self.amp, self.freq, self.phase)
+        p = e_p[:, None] * s(self.amp, self.freq, self.phase)
         ang = e[:, None] * s(self.aamp / self.afreq, self.afreq, self.aphase)
         R = _rot(ang[:, 0], ang[:, 1], ang[:, 2]) @ R_LEVEL
         return R, p

@@ -103,6 +103,11 @@ class SlamConfig:
     # healthy runs lost tracking with 4-62 in view, or with more just after a start, regained within 0.2 s, before
     # a restart's window can fill (runtime.start.try_restart)
     restart_lost_min_tracks: int = 120  # tracks in view at a loss of tracking that ask for an in-motion restart
+    # a start that has not acquired visual tracking after this long in motion (frames ``building``), with
+    # restart_lost_min_tracks tracks in view, disagrees with the images as well: re-initialise in motion (MH_05 IMU
+    # seeds 352 and 360 on an Intel Xeon: 10-13 s without visual tracking after a start at 0.5x and 0.12x the true
+    # path, then 1.4 and 4.6 m; healthy runs build for at most 2.2 s); 0: off
+    building_restart_s: float = 4.0
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
@@ -208,11 +213,14 @@ class SlamSystem:
         self.lost = False
         self.acquired = False  # visual tracking held (lost_min_landmarks tracked) since the (re)initialisation
         self.building = False  # not acquired yet, the map has its first landmarks
+        self.building_since: int | None = None  # ns, the first frame recorded ``building`` since the (re)initialisation
         self.lost_since: int | None = None  # ns, start of the current loss of visual tracking
         self.coast_warned = False
         self.reloc_pending: dict | None = None  # set when tracking resumed after a long loss
         self.restart_until: int | None = None  # ns: try an in-motion re-initialisation until then
-        self.restart_after_loss = False  # the restart tried is one after a loss with tracks in view
+        # why the restart tried disagrees with the images (after a loss with tracks in view, or after building
+        # without visual tracking; runtime.start.try_restart); None: a restart after a start turning in place
+        self.restart_after_loss: str | None = None
         self.older_pending: tuple[int, list] | None = None  # frames before the start's first keyframe (repose_older)
         self.initializer.reset()
 
@@ -379,6 +387,7 @@ class SlamSystem:
                 msg = f"visual tracking acquired ({n_lm} landmarks) {after:.2f} s after initialisation"
                 self.event(ts, msg, logging.INFO)
             self.building = not self.acquired and (self.building or self.map.n_landmarks > 0)
+            self._restart_if_building(ts)
             return
         if n_lm < c.lost_min_landmarks and not self.lost:
             self.lost, self.lost_since, self.coast_warned = True, ts, False
@@ -386,7 +395,7 @@ class SlamSystem:
             n_tracks = self.tracker.n_tracks
             if n_tracks >= c.restart_lost_min_tracks and self.restart_until is None:
                 self.restart_until = ts + s_to_ns(c.dynamic_init.refine_within_s)
-                self.restart_after_loss = True
+                self.restart_after_loss = "after a loss with tracks in view"
                 self.initializer.reset()
                 self.event(
                     ts,
@@ -399,11 +408,35 @@ class SlamSystem:
         elif self.lost and n_lm >= c.lost_min_landmarks:
             self.lost = False
             if self.restart_after_loss:  # the images agree with the estimate again
-                self.restart_until, self.restart_after_loss = None, False
+                self.restart_until, self.restart_after_loss = None, None
             dur = ns_to_s(ts - self.lost_since)
             self.event(ts, f"visual tracking regained ({n_lm} landmarks) after {dur:.2f} s", logging.INFO)
             if c.reloc.enabled and dur >= c.reloc.min_lost_s:
                 self.reloc_pending = {"since": self.lost_since, "regained": ts, "attempts": 0}
+
+    def _restart_if_building(self, ts: int) -> None:
+        """Arm an in-motion restart (as after a loss with tracks in view) when the frames have been ``building``
+        (moving, visual tracking not acquired since the start) for ``building_restart_s`` with
+        ``restart_lost_min_tracks`` tracks in view; visual tracking acquired first cancels it."""
+        c = self.cfg
+        if self.acquired and self.building_since is not None:
+            self.building_since = None
+            if self.restart_after_loss:  # the images agree with the estimate after all
+                self.restart_until, self.restart_after_loss = None, None
+            return
+        if self.building_since is None or c.building_restart_s <= 0 or self.restart_until is not None:
+            return
+        dur = ns_to_s(ts - self.building_since)
+        n_tracks = self.tracker.n_tracks
+        if dur >= c.building_restart_s and n_tracks >= c.restart_lost_min_tracks:
+            self.restart_until = ts + s_to_ns(c.dynamic_init.refine_within_s)
+            self.restart_after_loss = "after building without visual tracking"
+            self.initializer.reset()
+            self.event(
+                ts,
+                f"no visual tracking after {dur:.1f} s in motion since the start, with {n_tracks} tracks in view: "
+                "the estimate disagrees with the images; re-initialising in motion",
+            )
 
     def _visual_status(self) -> str:
         """A moving frame's status while not lost: ``tracking`` once visual tracking is acquired, before that
@@ -650,6 +683,8 @@ class SlamSystem:
         rec = FrameRecord(ts, frame_idx, ref.kf_id, inv_T(ref.T_w_b) @ self.T_cur, self.T_cur.copy(), is_kf, status)
         rec.segment = self.segment
         self.records.append(rec)
+        if status == "building" and self.building_since is None:
+            self.building_since = ts
         return rec
 
     # ------------------------------------------------------------------ results

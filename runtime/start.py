@@ -205,21 +205,23 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
       older frames integrated back from it: on the realistic ``handheld`` seed 102 a start turning in place had read
       0.38 m/s of translation as a 0.05 rad/s gyroscope bias, and no restart over every frame came (12.3 m; 48.1 mm
       with the fallback).
-    - After a loss of visual tracking while the front end still holds ``restart_lost_min_tracks`` tracks
-      (``system.restart_after_loss``): the window's estimate disagrees with a textured view. Over a recent window;
+    - After a loss of visual tracking while the front end still holds ``restart_lost_min_tracks`` tracks, or after
+      ``building_restart_s`` of a map that acquires no visual tracking with as many in view
+      (``system.restart_after_loss`` says which): the window's estimate disagrees with a textured view. Over a
+      recent window;
       every record of the last ``backfill_s`` older than it is integrated back from the new state on the IMU. On
       ``handheld`` seed 115 a restart with a 5.5x scale lost every landmark while 176 tracks were in view, and the
-      run diverged (14.3 m; 39 mm with this restart). Tracking regained first cancels it.
+      run diverged (14.3 m; 39 mm with this restart). Tracking regained (or acquired) first cancels it.
 
     (Restarting after any long loss of visual tracking was tried and removed: on the synthetic test with tracking
     forced lost, restarts every second gave ATE 0.46 m; bridging on the IMU and triangulating from the coasted
     keyframes keeps it at centimetres. A bare view is not a disagreement.)"""
     loss = system.restart_after_loss
     if system.restart_until is not None and ts > system.restart_until:
-        system.restart_until, system.restart_after_loss = None, False
+        system.restart_until, system.restart_after_loss = None, None
         system.diverged_pending = []  # as the start turning in place posed them
-        what = "the loss with tracks in view" if loss else "the start turning in place"
-        system.event(ts, f"no in-motion re-initialisation after {what}: keeping the estimate")
+        what = loss or "after the start turning in place"
+        system.event(ts, f"no in-motion re-initialisation {what}: keeping the estimate")
     run = system.initializer
     if system.restart_until is None:
         if run.frames:
@@ -261,11 +263,11 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     )
     backfill_records(system, moved, kf_ids)
     system.last_kf_feats = feats
-    system.lost, system.acquired, system.building = False, False, False
+    system.lost, system.acquired, system.building, system.building_since = False, False, False, None
     system.restart_until, system.reloc_pending = None, None
     run.reset()
-    why = "after a loss with tracks in view" if loss else "after a start turning in place"
-    system.restart_after_loss = False
+    why = loss or "after a start turning in place"
+    system.restart_after_loss = None
     system.restarts.append({"t_s": round(ns_to_s(ts), 4), "why": why, **st.info})
     system.event(ts, f"re-initialised in motion {why}, same map frame: {st.info}")
     return True

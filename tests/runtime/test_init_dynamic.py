@@ -441,7 +441,7 @@ def _lost_system(n_tracks: int, restart_until=None):
         coast_warned=False,
         reloc_pending=None,
         restart_until=restart_until,
-        restart_after_loss=False,
+        restart_after_loss=None,
         tracker=SimpleNamespace(n_tracks=n_tracks),
         initializer=SimpleNamespace(reset=lambda: events.append("reset")),
         event=lambda ts, msg, level=None: events.append(msg),
@@ -475,6 +475,49 @@ def test_a_loss_with_tracks_in_view_arms_a_restart_and_a_bare_view_does_not():
     assert pending.restart_until == ts + 5 * 10**9 and not pending.restart_after_loss
 
 
+def test_a_start_that_acquires_no_visual_tracking_in_motion_arms_a_restart():
+    """Frames recorded ``building`` (moving, visual tracking not acquired since the start) for ``building_restart_s``
+    with ``restart_lost_min_tracks`` tracks in view arm an in-motion restart, as a loss with tracks in view does
+    (MH_05 IMU seeds 352 and 360: 10-13 s of it, then 1.4 and 4.6 m); acquiring visual tracking first cancels it;
+    fewer tracks, a shorter stretch, a restart already pending or the setting at 0 arm nothing."""
+    from types import SimpleNamespace
+
+    from runtime.slam import SlamSystem
+
+    t0 = 3 * 10**9
+    n = _lost_system(0).cfg.restart_lost_min_tracks
+    wait = int(_lost_system(0).cfg.building_restart_s * 1e9)
+
+    def building(n_tracks, **kw):
+        system = _lost_system(n_tracks, **kw)
+        system.acquired, system.building, system.building_since = False, False, t0
+        system.map, system.init_info = SimpleNamespace(n_landmarks=0), {"t_s": t0 * 1e-9}
+        system._restart_if_building = lambda ts: SlamSystem._restart_if_building(system, ts)
+        return system
+
+    early = building(n)
+    SlamSystem._update_lost(early, t0 + wait - 10**8, 2)
+    assert early.restart_until is None and not early.restart_after_loss
+    armed = building(n)
+    SlamSystem._update_lost(armed, t0 + wait, 2)
+    assert armed.restart_after_loss == "after building without visual tracking" and "reset" in armed.events
+    assert armed.restart_until == t0 + wait + int(armed.cfg.dynamic_init.refine_within_s * 1e9)
+    SlamSystem._update_lost(armed, t0 + wait + 10**8, 30)  # acquired: the images agree after all
+    assert armed.acquired and armed.restart_until is None and not armed.restart_after_loss
+    assert armed.building_since is None
+
+    bare = building(n - 1)
+    SlamSystem._update_lost(bare, t0 + 2 * wait, 2)
+    assert bare.restart_until is None
+    pending = building(n, restart_until=t0 + 10 * 10**9)  # a restart after a start turning in place
+    SlamSystem._update_lost(pending, t0 + 2 * wait, 2)
+    assert pending.restart_until == t0 + 10 * 10**9 and not pending.restart_after_loss
+    off = building(n)
+    off.cfg.building_restart_s = 0.0
+    SlamSystem._update_lost(off, t0 + 2 * wait, 2)
+    assert off.restart_until is None
+
+
 def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_records(monkeypatch):
     """After a loss with tracks in view the restart takes a recent window (``since`` None), keeps the frames of the
     last ``backfill_s``, and every record of those seconds older than the new window is integrated back from the new
@@ -505,7 +548,7 @@ def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_recor
     system = SimpleNamespace(
         cfg=cfg,
         restart_until=ts + 10**9,
-        restart_after_loss=True,
+        restart_after_loss="after a loss with tracks in view",
         initializer=SimpleNamespace(
             add=lambda s, keep_since: added.append(keep_since), try_motion=try_motion, reset=lambda: None
         ),
@@ -533,3 +576,29 @@ def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_recor
     assert sorted(reposed) == [r.ts for r in records if keep <= r.ts < t_kf]
     for t, T in reposed.items():
         np.testing.assert_allclose(T[:3, 3], T0[:3, 3] - v0 * (t_kf - t) * 1e-9, atol=1e-6)
+
+
+def test_the_intrinsics_first_pass_never_restarts_for_want_of_visual_tracking(monkeypatch):
+    """The first pass only feeds the calibration, which such a restart there moved by chance (MH_05 IMU seed 377):
+    it runs with ``building_restart_s`` 0, the run's own setting untouched."""
+    from types import SimpleNamespace
+
+    import runtime.run as run_mod
+    from runtime.slam import SlamConfig
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_live(camera, T_b_c, imu, cfg):
+        seen.append(cfg)
+        raise Stop
+
+    monkeypatch.setattr(run_mod, "LiveSlam", fake_live)
+    cfg = SlamConfig()
+    seq = SimpleNamespace(frame_ts=np.arange(10) * 50_000_000, camera=None, T_b_c=None, imu=None)
+    with pytest.raises(Stop):
+        run_mod.first_pass(seq, cfg, 10)
+    assert seen[0].building_restart_s == 0.0 and cfg.building_restart_s == 4.0
+    assert seen[0].intrinsics == cfg.intrinsics and seen[0].restart_lost_min_tracks == cfg.restart_lost_min_tracks

@@ -107,7 +107,7 @@ class SlamConfig:
     # restart_lost_min_tracks tracks in view, disagrees with the images as well: re-initialise in motion (MH_05 IMU
     # seeds 352 and 360 on an Intel Xeon: 10-13 s without visual tracking after a start at 0.5x and 0.12x the true
     # path, then 1.4 and 4.6 m; healthy runs build for at most 2.2 s); 0: off
-    building_restart_s: float = 4.0
+    building_restart_s: float = 4.0  # s in motion without visual tracking before that restart; 0: off
     lost_reproj_factor: float = 4.0  # while lost, triangulation accepts this many times the reprojection error
     lost_min_kf_interval_s: float = 0.25  # while lost, keyframes at most this often (baselines for triangulation)
     redetect_ratio: float = 0.6  # detect at any frame when tracks fall below this fraction of max_features
@@ -394,13 +394,8 @@ class SlamSystem:
             self.event(ts, f"visual tracking lost ({n_lm} landmarks tracked): coasting on the IMU")
             n_tracks = self.tracker.n_tracks
             if n_tracks >= c.restart_lost_min_tracks and self.restart_until is None:
-                self.restart_until = ts + s_to_ns(c.dynamic_init.refine_within_s)
-                self.restart_after_loss = "after a loss with tracks in view"
-                self.initializer.reset()
-                self.event(
-                    ts,
-                    f"{n_tracks} tracks in view but {n_lm} landmarks: the estimate disagrees with the "
-                    "images; re-initialising in motion",
+                self._arm_restart(
+                    ts, "after a loss with tracks in view", f"{n_tracks} tracks in view but {n_lm} landmarks"
                 )
         elif self.lost and n_lm < c.lost_min_landmarks and not self.coast_warned and ts - self.lost_since >= s_to_ns(3):
             self.coast_warned = True  # once per loss
@@ -429,14 +424,19 @@ class SlamSystem:
         dur = ns_to_s(ts - self.building_since)
         n_tracks = self.tracker.n_tracks
         if dur >= c.building_restart_s and n_tracks >= c.restart_lost_min_tracks:
-            self.restart_until = ts + s_to_ns(c.dynamic_init.refine_within_s)
-            self.restart_after_loss = "after building without visual tracking"
-            self.initializer.reset()
-            self.event(
+            self._arm_restart(
                 ts,
-                f"no visual tracking after {dur:.1f} s in motion since the start, with {n_tracks} tracks in view: "
-                "the estimate disagrees with the images; re-initialising in motion",
+                "after building without visual tracking",
+                f"no visual tracking after {dur:.1f} s in motion since the start, with {n_tracks} tracks in view",
             )
+
+    def _arm_restart(self, ts: int, why: str, seen: str) -> None:
+        """Try an in-motion restart for ``refine_within_s`` from ``ts`` (:func:`runtime.start.try_restart`) because
+        the estimate disagrees with the images (``why``, for ``restarts`` in metrics.json; ``seen``, for the event)."""
+        self.restart_until = ts + s_to_ns(self.cfg.dynamic_init.refine_within_s)
+        self.restart_after_loss = why
+        self.initializer.reset()
+        self.event(ts, f"{seen}: the estimate disagrees with the images; re-initialising in motion")
 
     def _visual_status(self) -> str:
         """A moving frame's status while not lost: ``tracking`` once visual tracking is acquired, before that

@@ -430,10 +430,10 @@ def _lost_system(n_tracks: int, restart_until=None):
     """What ``SlamSystem._update_lost`` reads, tracking acquired and not lost."""
     from types import SimpleNamespace
 
-    from runtime.slam import SlamConfig
+    from runtime.slam import SlamConfig, SlamSystem
 
     events = []
-    return SimpleNamespace(
+    system = SimpleNamespace(
         cfg=SlamConfig(),
         acquired=True,
         lost=False,
@@ -447,6 +447,8 @@ def _lost_system(n_tracks: int, restart_until=None):
         event=lambda ts, msg, level=None: events.append(msg),
         events=events,
     )
+    system._arm_restart = lambda *a: SlamSystem._arm_restart(system, *a)
+    return system
 
 
 def test_a_loss_with_tracks_in_view_arms_a_restart_and_a_bare_view_does_not():

@@ -42,7 +42,9 @@ def main(argv: list[str] | None = None) -> Path:
     from runtime.io.tum import read_tum
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--work", required=True, nargs="+", help="bench_peers --work folders (the first with a run wins)")
+    ap.add_argument(
+        "--work", required=True, nargs="+", help="bench_peers --work folders (the first with a system's runs wins)"
+    )
     ap.add_argument("--sequence", required=True)
     ap.add_argument("--data", required=True, help="bench_peers --data folder")
     ap.add_argument("--out", required=True)
@@ -51,26 +53,33 @@ def main(argv: list[str] | None = None) -> Path:
     fig, ax = plt.subplots(figsize=(9, 3.6))
     t0 = int(seq.frame_ts[0])
     for system in scoring.SYSTEMS:
-        found = [Path(w) / a.sequence / f"{system}_run0" / "trajectory.txt" for w in a.work]
-        found = [f for f in found if f.is_file() and f.stat().st_size > 0]
-        if not found:
+        runs = []  # the first --work folder with a run of this system: all its runs
+        for w in a.work:
+            files = sorted((Path(w) / a.sequence).glob(f"{system}_run*/trajectory.txt"))
+            runs = [f for f in files if f.stat().st_size > 0]
+            if runs:
+                break
+        curves = []
+        for f in runs:
+            est_ts, est_T = read_tum(f)
+            if len(est_ts) >= 3:
+                ts, err = aligned_errors(system, est_ts, est_T, seq.gt.ts, seq.gt.T_w_b, seq.T_b_c)
+                curves.append((float(np.sqrt(np.mean(err**2))), ts, err))
+        if not curves:
             continue
-        f = found[0]
-        est_ts, est_T = read_tum(f)
-        if len(est_ts) < 3:
-            continue
-        ts, err = aligned_errors(system, est_ts, est_T, seq.gt.ts, seq.gt.T_w_b, seq.T_b_c)
-        rmse = float(np.sqrt(np.mean(err**2)))
+        curves.sort(key=lambda c: c[0])
+        rmse, ts, err = curves[(len(curves) - 1) // 2]  # the median run (the lower one of an even count)
+        which = f", median of {len(curves)} runs" if len(curves) > 1 else ""
         ax.plot(
             (ts - t0) * 1e-9,
             1e3 * err,
             lw=1,
-            label=f"{system} (Sim3 vs {scoring.reference_frame(system)}, {1e3 * rmse:.1f} mm)",
+            label=f"{system} (Sim3 vs {scoring.reference_frame(system)}, {1e3 * rmse:.1f} mm{which})",
         )
     ax.set_xlabel("time [s]")
     ax.set_ylabel("position error [mm]")
     ax.set_yscale("log")
-    ax.set_title(f"{a.sequence}: per-frame error after Sim(3) alignment (run 0 of each system)")
+    ax.set_title(f"{a.sequence}: per-frame error after Sim(3) alignment (the median run of each system)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     out = Path(a.out)

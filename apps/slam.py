@@ -92,9 +92,18 @@ def _sequence(cfg):
     topics = BagTopics(t.get("image"), t.get("imu"), t.get("gt", "auto"))
     calib = Path(str(cfg.calib)).expanduser() if cfg.get("calib") is not None else None
     try:
-        return open_sequence(root, calib, topics)
+        seq = open_sequence(root, calib, topics)
     except (ValueError, OSError) as e:  # EurocFormatError names the file and the problem
         raise UsageError(f"cannot read the sequence: {e}") from e
+    start = float(cfg.get("start_s") or 0.0)
+    if start > 0:
+        from runtime.io.sequence import StartView
+
+        try:
+            seq = StartView(seq, start)
+        except ValueError as e:
+            raise UsageError(str(e)) from e
+    return seq
 
 
 def default_out(root: str | Path) -> Path:
@@ -116,6 +125,9 @@ def _check_args(cfg) -> None:
     mf = cfg.max_frames
     if mf is not None and (isinstance(mf, bool) or not isinstance(mf, int) or mf < 1):
         raise UsageError(f"max_frames={mf!r}: expected a positive number of frames or null (all)")
+    st = cfg.get("start_s")
+    if st is not None and (isinstance(st, bool) or not isinstance(st, (int, float)) or not 0 <= st < float("inf")):
+        raise UsageError(f"start_s={st!r}: expected seconds >= 0 from the sequence's first frame")
 
 
 def _story(m: dict) -> str | None:
@@ -244,7 +256,8 @@ def run(cfg) -> int:
             f"dit-slam: removed the outputs of the earlier run {previous or '(unknown)'} in {out}: {', '.join(removed)}"
         )
     n = len(seq) if cfg.max_frames is None else min(len(seq), int(cfg.max_frames))
-    print(f"dit-slam: {seq.root} ({n} frames, {'with' if seq.gt is not None else 'no'} ground truth) -> {out}")
+    start = f", from {seq.start_s:g} s (frame {seq.start_index})" if hasattr(seq, "start_index") else ""
+    print(f"dit-slam: {seq.root} ({n} frames{start}, {'with' if seq.gt is not None else 'no'} ground truth) -> {out}")
     print(f"dit-slam: run {run_id}")
     try:
         m = run_sequence(

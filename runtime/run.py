@@ -103,6 +103,7 @@ def _run(seq, out, cfg, progress, max_frames, viz, plot, dense, model_dir, depth
         "complete": done == n,
         "interrupted_by": stop.signal,
         "sequence": str(getattr(seq, "root", "")),
+        "start_s": float(getattr(seq, "start_s", 0.0)),  # a run started later than the sequence (dit-slam start_s)
         "frames": int(n),
         "frames_processed": int(done),
         "frames_with_pose": int(len(ts)),

@@ -22,7 +22,7 @@ from runtime.io.euroc import read_euroc
 
 log = logging.getLogger(__name__)
 
-__all__ = ["open_sequence", "CameraView", "PinholeView"]
+__all__ = ["open_sequence", "CameraView", "PinholeView", "StartView"]
 
 
 class CameraView:
@@ -67,6 +67,59 @@ class PinholeView(CameraView):
     def depth(self, i: int) -> np.ndarray | None:
         d = self.seq.depth(i)
         return None if d is None else self.fisheye.undistort_image(d, interpolation=cv2.INTER_NEAREST)
+
+
+class StartView:
+    """The sequence as a recording started ``start_s`` seconds after its first frame: its frames from the first one
+    stamped at or after that time, and only the IMU samples after the last frame left out (a recording started
+    there has none earlier). Frames, images and depth are indexed from that frame; the ground truth stays whole,
+    and every other attribute is the wrapped sequence's.
+
+    Raises:
+        ValueError: ``start_s`` negative or not finite, or leaving fewer than two frames.
+    """
+
+    def __init__(self, seq, start_s: float) -> None:
+        start_s = float(start_s)
+        ts = np.asarray(seq.frame_ts, dtype=np.int64)
+        if not (np.isfinite(start_s) and start_s >= 0):
+            raise ValueError(f"start_s={start_s:g}: expected seconds >= 0 from the sequence's first frame")
+        k = int(np.searchsorted(ts, ts[0] + round(start_s * 1e9), "left")) if ts.size else 0
+        if ts.size - k < 2:
+            span = (ts[-1] - ts[0]) * 1e-9 if ts.size else 0.0
+            raise ValueError(
+                f"start_s={start_s:g}: leaves {max(ts.size - k, 0)} of the sequence's {ts.size} frames "
+                f"({span:.2f} s from the first to the last); need at least 2"
+            )
+        self.seq, self.start_s, self.start_index = seq, start_s, k
+        self.frame_ts = ts[k:]
+        paths = getattr(seq, "frame_paths", None)
+        if paths is not None:
+            self.frame_paths = list(paths)[k:]
+        imu_ts = np.asarray(seq.imu_ts, dtype=np.int64)
+        j = int(np.searchsorted(imu_ts, ts[k - 1], "right")) if k > 0 else 0
+        self.imu_ts, self.gyro, self.accel = imu_ts[j:], np.asarray(seq.gyro)[j:], np.asarray(seq.accel)[j:]
+
+    def image(self, i: int) -> np.ndarray:
+        return self.seq.image(self._index(i))
+
+    def depth(self, i: int) -> np.ndarray | None:
+        return self.seq.depth(self._index(i))
+
+    def _index(self, i: int) -> int:
+        i = int(i)
+        if not 0 <= i < len(self):
+            raise IndexError(f"frame {i} out of range: {len(self)} frames from {self.start_s:g} s")
+        return i + self.start_index
+
+    def __getattr__(self, name):
+        return getattr(self.seq, name)
+
+    def __len__(self) -> int:
+        return int(self.frame_ts.size)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.seq!r}, start_s={self.start_s:g})"
 
 
 def open_sequence(

@@ -37,6 +37,15 @@ def test_bars_hold_a_preset_to_every_run_and_count_the_mh05_runs_at_the_bar():
     assert not b["mh05"]["met"] and b["mh05_still2"]["met"]
 
 
+def test_mh05_runs_started_later_are_jobs_of_their_own_and_held_to_no_bar(tmp_path):
+    (tmp_path / "mav0" / "cam0").mkdir(parents=True)
+    args = SimpleNamespace(mh05=str(tmp_path), mh05_runs=["real"], mh05_starts=[5.0, 12.5])
+    assert bench_slam.mh05_jobs(args) == [("mh05", 0.0, 0.0), ("mh05_from5", 0.0, 5.0), ("mh05_from12.5", 0.0, 12.5)]
+    assert bench_slam.mh05_jobs(SimpleNamespace(mh05=str(tmp_path / "none"), mh05_runs=["real"], mh05_starts=[5])) == []
+    b = bench_slam.bars([_row("mh05", 0), _row("mh05_from5", 0, ate_se3_rmse_m=0.2)])
+    assert sorted(b) == ["mh05"] and b["mh05"]["met"]
+
+
 def test_flights_bar_holds_a_resting_start_to_1_cm_of_drift():
     rows = [
         _row("flight", 0, rest_drift_m=0.004, rest_s=2.0),

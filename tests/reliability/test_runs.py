@@ -28,6 +28,8 @@ def _fails(capsys, args):
     [
         ("viz=foo", "viz='foo': expected none or rerun"),
         ("max_frames=-1", "max_frames=-1: expected a positive number of frames"),
+        ("start_s=-1", "start_s=-1: expected seconds >= 0"),
+        ("start_s=100", "start_s=100: leaves 0 of the sequence's 80 frames"),
         ("runtime.backend.window_size=0", "setting runtime.backend.window_size=0 is out of range: must be >= 2"),
         ("runtime.features.max_features=0", "setting runtime.features.max_features=0 is out of range: must be >= 1"),
         ("out=/proc/x", "out=/proc/x is not writable"),
@@ -69,6 +71,20 @@ def test_a_new_run_removes_the_earlier_runs_outputs_and_says_so(tiny_seq, tmp_pa
     m = json.loads((out / "metrics.json").read_text())
     assert m["complete"] is True and m["run_id"] and m["frames_processed"] == m["frames"] == 80
     assert m["frames_with_pose"] > 0
+
+
+def test_a_run_started_later_poses_only_the_frames_from_its_start(tiny_seq, tmp_path, capsys):
+    from runtime.io.euroc import read_euroc
+    from runtime.io.tum import read_tum
+
+    out = tmp_path / "o"
+    slam_main([f"sequence={tiny_seq}", f"out={out}", "progress=false", "dense=false", "start_s=1.0"])
+    assert "(60 frames, from 1 s (frame 20)" in capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["start_s"] == 1.0 and m["frames"] == m["frames_processed"] == 60
+    ts, _ = read_tum(out / "trajectory.txt")
+    first = int(read_euroc(tiny_seq).frame_ts[20])
+    assert ts.size > 0 and int(ts.min()) >= first
 
 
 def test_default_outputs_differ_for_two_sequences_with_the_same_folder_name(tmp_path):

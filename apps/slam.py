@@ -165,9 +165,11 @@ def _summary(m: dict, out: Path, dense: bool) -> str:
             'the outputs hold what was processed ("complete": false in metrics.json)'
         )
     rss = m.get("peak_rss_mb")
+    first_pass = (m.get("intrinsics") or {}).get("first_pass_frames") and m.get("fps_frame_loop") is not None
     lines.append(
         f"  frames {m.get('frames_processed', m['frames'])} (with pose {m['frames_with_pose']}), keyframes "
         f"{m['keyframes']}, map points {m['map_points']}, {m['fps']:.1f} frames/s"
+        + (f" ({m['fps_frame_loop']:.1f} after the intrinsics' first pass)" if first_pass else "")
         + (f", peak memory {rss:.0f} MiB" if rss else "")
     )
     story = _story(m)

@@ -314,3 +314,6 @@ def test_the_summary_gives_the_peak_memory_and_the_dense_backlog_left_at_the_las
     )
     m["dense_later_jobs_at_last_frame"] = 0
     assert "later work" not in _summary(m, tmp_path, True)
+    assert "after the intrinsics' first pass" not in text  # no first pass ran
+    m |= {"intrinsics": {"first_pass_frames": 301}, "fps_frame_loop": 35.46}
+    assert "21.0 frames/s (35.5 after the intrinsics' first pass), peak memory 812 MiB" in _summary(m, tmp_path, True)

@@ -360,7 +360,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "--imu-noise-scale", type=float, default=1.0, help="ORB-SLAM3 IMU noise = this x imu0/sensor.yaml's densities"
     )
-    ap.add_argument("--peers-python", default=sys.executable, help="python with the extra 'peers' installed")
+    ap.add_argument(
+        "--peers-python",
+        default=sys.executable,
+        help="python with the extra 'peers' installed (a separate environment needs only numpy, scipy, "
+        "opencv-python-headless and pyyaml besides: its child reads the sequences' sensor.yaml files)",
+    )
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--merge", action="store_true", help="keep the rows of --out for (system, sequence) not run")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "peers.json"))

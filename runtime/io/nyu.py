@@ -18,7 +18,6 @@ import json
 import os
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 __all__ = [
@@ -38,8 +37,16 @@ class NyuFormatError(ValueError):
     """A NYU-layout file is missing or malformed; the message names the file and the problem."""
 
 
-def _dataset(f: h5py.File, key: str, path: Path) -> h5py.Dataset:
-    if key not in f or not isinstance(f[key], h5py.Dataset):
+def _h5py():
+    """h5py, imported on first use: the readers of the other formats (and the peers' benchmark child, which reads
+    only ``sensor.yaml`` files) do not need it."""
+    import h5py
+
+    return h5py
+
+
+def _dataset(f, key: str, path: Path):
+    if key not in f or not isinstance(f[key], _h5py().Dataset):
         raise NyuFormatError(f"{path}: missing dataset '{key}' (has {sorted(f.keys())})")
     return f[key]
 
@@ -77,7 +84,7 @@ def read_nyu_h5(
     if not path.is_file():
         raise NyuFormatError(f"{path}: missing file")
     try:
-        f = h5py.File(path, "r")
+        f = _h5py().File(path, "r")
     except OSError as e:
         raise NyuFormatError(f"{path}: not a readable HDF5 file ({e})") from e
     with f:
@@ -145,7 +152,7 @@ class NyuLabeledMat:
 
     def __init__(self, path: str | Path, indices: np.ndarray | list[int] | None = None):
         self.path = Path(path)
-        self._file: h5py.File | None = None
+        self._file = None  # h5py.File, opened on first use
         self._pid: int | None = None
         f = self._open()
         images, depths = _dataset(f, "images", self.path), _dataset(f, "depths", self.path)
@@ -181,12 +188,12 @@ class NyuLabeledMat:
                 )
         self.indices = idx
 
-    def _open(self) -> h5py.File:
+    def _open(self):
         if self._file is None or self._pid != os.getpid():
             if not self.path.is_file():
                 raise NyuFormatError(f"{self.path}: missing file")
             try:
-                self._file = h5py.File(self.path, "r")
+                self._file = _h5py().File(self.path, "r")
             except OSError as e:
                 raise NyuFormatError(f"{self.path}: not a MATLAB v7.3 / HDF5 file ({e})") from e
             self._pid = os.getpid()
@@ -278,7 +285,7 @@ def _read_split_mat(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         m = scipy.io.loadmat(str(path))
     except NotImplementedError:  # MATLAB v7.3 is HDF5
-        with h5py.File(path, "r") as f:
+        with _h5py().File(path, "r") as f:
             m = {k: f[k][()] for k in ("trainNdxs", "testNdxs") if k in f}
     except (ValueError, OSError) as e:
         raise NyuFormatError(f"{path}: not a readable MATLAB file ({e})") from e

@@ -313,3 +313,25 @@ def test_a_failed_peer_run_is_noted_by_its_cause_not_by_a_warning():
     assert failure_note(kept) == "failed: killed by SIGKILL"
     error = subprocess.CompletedProcess([], 1, "", "Traceback (most recent call last):\nValueError: bad image")
     assert failure_note(error) == "failed: ValueError: bad image"
+
+
+def test_the_peer_child_imports_without_h5py():
+    """The peers' child process reads only sensor.yaml files: it imports in an environment without h5py (a
+    separate one for the peers, ``--peers-python``), and the NYU reader imports h5py on first use."""
+    import sys
+
+    code = (
+        "import sys; sys.modules['h5py'] = None\n"  # any 'import h5py' now raises ImportError
+        "import benchmarks.peers.run_peer, runtime.io\n"
+        "import tempfile, pathlib\n"
+        "from runtime.io.nyu import read_nyu_h5\n"
+        "f = pathlib.Path(tempfile.mkdtemp()) / 'frame.h5'\n"
+        "f.write_bytes(b'not read')\n"
+        "try:\n"
+        "    read_nyu_h5(f)\n"
+        "except ImportError:\n"
+        "    print('h5py needed only here')\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[2])
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "h5py needed only here"

@@ -71,9 +71,9 @@ class PinholeView(CameraView):
 
 class StartView:
     """The sequence as a recording started ``start_s`` seconds after its first frame: its frames from the first one
-    stamped at or after that time, and only the IMU samples after the last frame left out (a recording started
-    there has none earlier). Frames, images and depth are indexed from that frame; the ground truth stays whole,
-    and every other attribute is the wrapped sequence's.
+    stamped at or after that time, and its IMU samples from just after the last frame it leaves out (a recording
+    started there has none earlier). Frames, images and depth are indexed from that frame; the ground truth stays
+    whole, and every other attribute is the wrapped sequence's.
 
     Raises:
         ValueError: ``start_s`` negative or not finite, or leaving fewer than two frames.

@@ -271,7 +271,7 @@ def bars(rows: list[dict]) -> dict:
     """
     nan = float("nan")
     out = {}
-    for fam in sorted({r["preset"] for r in rows} - {r["preset"] for r in rows if r["preset"].startswith("mh05_from")}):
+    for fam in sorted({r["preset"] for r in rows if not r["preset"].startswith("mh05_from")}):
         rs = [r for r in rows if r["preset"] == fam]
         ate = [r.get("ate_se3_rmse_m", nan) for r in rs]
         if fam.startswith("mh05"):

@@ -220,7 +220,7 @@ class SlamSystem:
         self.restart_until: int | None = None  # ns: try an in-motion re-initialisation until then
         # why the restart tried disagrees with the images (after a loss with tracks in view, or after building
         # without visual tracking; runtime.start.try_restart); None: a restart after a start turning in place
-        self.restart_after_loss: str | None = None
+        self.restart_why: str | None = None
         self.older_pending: tuple[int, list] | None = None  # frames before the start's first keyframe (repose_older)
         self.initializer.reset()
 
@@ -402,8 +402,8 @@ class SlamSystem:
             self.event(ts, "no visual constraints for 3 s: the pose is IMU dead reckoning, its error grows quickly")
         elif self.lost and n_lm >= c.lost_min_landmarks:
             self.lost = False
-            if self.restart_after_loss:  # the images agree with the estimate again
-                self.restart_until, self.restart_after_loss = None, None
+            if self.restart_why:  # the images agree with the estimate again
+                self.restart_until, self.restart_why = None, None
             dur = ns_to_s(ts - self.lost_since)
             self.event(ts, f"visual tracking regained ({n_lm} landmarks) after {dur:.2f} s", logging.INFO)
             if c.reloc.enabled and dur >= c.reloc.min_lost_s:
@@ -416,8 +416,8 @@ class SlamSystem:
         c = self.cfg
         if self.acquired and self.building_since is not None:
             self.building_since = None
-            if self.restart_after_loss:  # the images agree with the estimate after all
-                self.restart_until, self.restart_after_loss = None, None
+            if self.restart_why:  # the images agree with the estimate after all
+                self.restart_until, self.restart_why = None, None
             return
         if self.building_since is None or c.building_restart_s <= 0 or self.restart_until is not None:
             return
@@ -434,7 +434,7 @@ class SlamSystem:
         """Try an in-motion restart for ``refine_within_s`` from ``ts`` (:func:`runtime.start.try_restart`) because
         the estimate disagrees with the images (``why``, for ``restarts`` in metrics.json; ``seen``, for the event)."""
         self.restart_until = ts + s_to_ns(self.cfg.dynamic_init.refine_within_s)
-        self.restart_after_loss = why
+        self.restart_why = why
         self.initializer.reset()
         self.event(ts, f"{seen}: the estimate disagrees with the images; re-initialising in motion")
 

@@ -207,7 +207,7 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
       with the fallback).
     - After a loss of visual tracking while the front end still holds ``restart_lost_min_tracks`` tracks, or after
       ``building_restart_s`` of a map that acquires no visual tracking with as many in view
-      (``system.restart_after_loss`` says which): the window's estimate disagrees with a textured view. Over a
+      (``system.restart_why`` says which): the window's estimate disagrees with a textured view. Over a
       recent window;
       every record of the last ``backfill_s`` older than it is integrated back from the new state on the IMU. On
       ``handheld`` seed 115 a restart with a 5.5x scale lost every landmark while 176 tracks were in view, and the
@@ -216,9 +216,9 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     (Restarting after any long loss of visual tracking was tried and removed: on the synthetic test with tracking
     forced lost, restarts every second gave ATE 0.46 m; bridging on the IMU and triangulating from the coasted
     keyframes keeps it at centimetres. A bare view is not a disagreement.)"""
-    loss = system.restart_after_loss
+    loss = system.restart_why
     if system.restart_until is not None and ts > system.restart_until:
-        system.restart_until, system.restart_after_loss = None, None
+        system.restart_until, system.restart_why = None, None
         system.diverged_pending = []  # as the start turning in place posed them
         what = loss or "after the start turning in place"
         system.event(ts, f"no in-motion re-initialisation {what}: keeping the estimate")
@@ -267,7 +267,7 @@ def try_restart(system, frame_idx: int, ts: int, image, feats) -> bool:
     system.restart_until, system.reloc_pending = None, None
     run.reset()
     why = loss or "after a start turning in place"
-    system.restart_after_loss = None
+    system.restart_why = None
     system.restarts.append({"t_s": round(ns_to_s(ts), 4), "why": why, **st.info})
     system.event(ts, f"re-initialised in motion {why}, same map frame: {st.info}")
     return True

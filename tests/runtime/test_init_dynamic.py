@@ -329,7 +329,7 @@ def test_a_restart_may_take_a_recent_window_from_restart_recent_after_s_on(after
     system = SimpleNamespace(
         cfg=cfg,
         restart_until=t_hover + int(cfg.dynamic_init.refine_within_s * 1e9),
-        restart_after_loss=False,
+        restart_why=None,
         initializer=run,
         t_first=10**9,
         dense=None,
@@ -441,7 +441,7 @@ def _lost_system(n_tracks: int, restart_until=None):
         coast_warned=False,
         reloc_pending=None,
         restart_until=restart_until,
-        restart_after_loss=None,
+        restart_why=None,
         tracker=SimpleNamespace(n_tracks=n_tracks),
         initializer=SimpleNamespace(reset=lambda: events.append("reset")),
         event=lambda ts, msg, level=None: events.append(msg),
@@ -462,19 +462,19 @@ def test_a_loss_with_tracks_in_view_arms_a_restart_and_a_bare_view_does_not():
     n = _lost_system(0).cfg.restart_lost_min_tracks
     textured = _lost_system(n)
     SlamSystem._update_lost(textured, ts, 3)
-    assert textured.lost and textured.restart_after_loss
+    assert textured.lost and textured.restart_why
     assert textured.restart_until == ts + int(textured.cfg.dynamic_init.refine_within_s * 1e9)
     assert "reset" in textured.events  # the restart's frames start at the loss
     SlamSystem._update_lost(textured, ts + 10**8, 30)  # regained: the images agree again
-    assert not textured.lost and textured.restart_until is None and not textured.restart_after_loss
+    assert not textured.lost and textured.restart_until is None and not textured.restart_why
 
     bare = _lost_system(n - 1)
     SlamSystem._update_lost(bare, ts, 3)
-    assert bare.lost and bare.restart_until is None and not bare.restart_after_loss
+    assert bare.lost and bare.restart_until is None and not bare.restart_why
 
     pending = _lost_system(n, restart_until=ts + 5 * 10**9)
     SlamSystem._update_lost(pending, ts, 3)
-    assert pending.restart_until == ts + 5 * 10**9 and not pending.restart_after_loss
+    assert pending.restart_until == ts + 5 * 10**9 and not pending.restart_why
 
 
 def test_a_start_that_acquires_no_visual_tracking_in_motion_arms_a_restart():
@@ -499,13 +499,13 @@ def test_a_start_that_acquires_no_visual_tracking_in_motion_arms_a_restart():
 
     early = building(n)
     SlamSystem._update_lost(early, t0 + wait - 10**8, 2)
-    assert early.restart_until is None and not early.restart_after_loss
+    assert early.restart_until is None and not early.restart_why
     armed = building(n)
     SlamSystem._update_lost(armed, t0 + wait, 2)
-    assert armed.restart_after_loss == "after building without visual tracking" and "reset" in armed.events
+    assert armed.restart_why == "after building without visual tracking" and "reset" in armed.events
     assert armed.restart_until == t0 + wait + int(armed.cfg.dynamic_init.refine_within_s * 1e9)
     SlamSystem._update_lost(armed, t0 + wait + 10**8, 30)  # acquired: the images agree after all
-    assert armed.acquired and armed.restart_until is None and not armed.restart_after_loss
+    assert armed.acquired and armed.restart_until is None and not armed.restart_why
     assert armed.building_since is None
 
     bare = building(n - 1)
@@ -513,7 +513,7 @@ def test_a_start_that_acquires_no_visual_tracking_in_motion_arms_a_restart():
     assert bare.restart_until is None
     pending = building(n, restart_until=t0 + 10 * 10**9)  # a restart after a start turning in place
     SlamSystem._update_lost(pending, t0 + 2 * wait, 2)
-    assert pending.restart_until == t0 + 10 * 10**9 and not pending.restart_after_loss
+    assert pending.restart_until == t0 + 10 * 10**9 and not pending.restart_why
     off = building(n)
     off.cfg.building_restart_s = 0.0
     SlamSystem._update_lost(off, t0 + 2 * wait, 2)
@@ -550,7 +550,7 @@ def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_recor
     system = SimpleNamespace(
         cfg=cfg,
         restart_until=ts + 10**9,
-        restart_after_loss="after a loss with tracks in view",
+        restart_why="after a loss with tracks in view",
         initializer=SimpleNamespace(
             add=lambda s, keep_since: added.append(keep_since), try_motion=try_motion, reset=lambda: None
         ),
@@ -571,7 +571,7 @@ def test_a_restart_after_a_loss_takes_a_recent_window_and_reposes_the_lost_recor
     assert start.try_restart(system, 260, ts, None, None) is True
     (k,) = calls
     assert k["since"] is None and k["recent_from"] is None and added == [keep]
-    assert system.restarts[-1]["why"] == "after a loss with tracks in view" and not system.restart_after_loss
+    assert system.restarts[-1]["why"] == "after a loss with tracks in view" and not system.restart_why
     assert [r.ts for r in system.records] == [r.ts for r in records if r.ts < keep]  # older ones kept as they were
     (m,) = moved
     reposed = {s.ts: T for s, T in m.frames}
